@@ -1,0 +1,158 @@
+//! JSON types of the REST API under `/api/v1`. The server serialises them, the SDK's `Client`
+//! deserialises them; with the `openapi` feature they also describe themselves for the OpenAPI
+//! document.
+
+use serde::{Deserialize, Serialize};
+use std::collections::BTreeMap;
+
+#[cfg(feature = "openapi")]
+use utoipa::ToSchema;
+
+/// `GET /api/v1/health`.
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+#[cfg_attr(feature = "openapi", derive(ToSchema))]
+pub struct Health {
+    /// Always "ok" when the server answers.
+    pub status: String,
+    pub version: String,
+    pub uptime_s: f64,
+    /// Robots known to the server (online or not).
+    pub robots: usize,
+    /// Frames that arrived on a key with an unusable robot id, so no robot could be charged.
+    pub frames_on_bad_keys: u64,
+}
+
+/// Online: the robot's liveliness token is present. Offline: it was withdrawn or expired.
+/// Unknown: frames arrived but no token was ever seen.
+#[derive(Debug, Clone, Copy, Serialize, Deserialize, PartialEq, Eq)]
+#[cfg_attr(feature = "openapi", derive(ToSchema))]
+#[serde(rename_all = "snake_case")]
+pub enum Presence {
+    Online,
+    Offline,
+    Unknown,
+}
+
+/// Frame counters of one robot. Every frame that reaches the server ends in exactly one of
+/// processed, dropped or rejected (or is still queued); `lost` counts sequence numbers that never
+/// arrived (dropped in transit by zenoh's congestion control, or by the network).
+#[derive(Debug, Clone, Default, Serialize, Deserialize, PartialEq)]
+#[cfg_attr(feature = "openapi", derive(ToSchema))]
+pub struct FrameCounters {
+    pub received: u64,
+    pub processed: u64,
+    /// Dropped by the server's queue because processing fell behind (see the drop policy).
+    pub dropped: u64,
+    pub rejected: u64,
+    /// Rejections by reason (snake_case reason code → count).
+    pub rejected_by_reason: BTreeMap<String, u64>,
+    pub lost: u64,
+    pub queued: u64,
+}
+
+/// The latest rejection of a robot's frame, with a message a person can act on.
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+#[cfg_attr(feature = "openapi", derive(ToSchema))]
+pub struct Rejection {
+    /// Reason code, as counted in `rejected_by_reason`.
+    pub reason: String,
+    pub message: String,
+    /// Sequence number of the rejected frame, when it could be read.
+    pub sequence: Option<u64>,
+    /// Server time of the rejection, ns since the Unix epoch.
+    pub at_ns: u64,
+}
+
+/// Timing of processed frames over the recent window.
+#[derive(Debug, Clone, Default, Serialize, Deserialize, PartialEq)]
+#[cfg_attr(feature = "openapi", derive(ToSchema))]
+pub struct Timing {
+    /// Processed frames per second over the last few seconds.
+    pub rate_hz: f64,
+    /// From the frame's capture stamp to the end of its processing, in ms (robot and server
+    /// clocks must agree for this to mean anything).
+    pub latency_ms_last: Option<f64>,
+    pub latency_ms_mean: Option<f64>,
+    pub latency_ms_max: Option<f64>,
+    /// Server-side processing time per frame (decode, validate, detect), in ms.
+    pub processing_ms_mean: Option<f64>,
+}
+
+/// `GET /api/v1/robots` (a list of these) and `GET /api/v1/robots/{robot_id}`.
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+#[cfg_attr(feature = "openapi", derive(ToSchema))]
+pub struct RobotStatus {
+    pub robot_id: String,
+    pub presence: Presence,
+    /// Last frame or liveliness event from the robot, server time, ns since the Unix epoch.
+    pub last_seen_ns: Option<u64>,
+    /// Session id of the latest readable frame.
+    pub session_id: Option<String>,
+    pub frames: FrameCounters,
+    pub timing: Timing,
+    pub last_rejection: Option<Rejection>,
+}
+
+/// Where a marker's distance came from.
+#[derive(Debug, Clone, Copy, Serialize, Deserialize, PartialEq, Eq)]
+#[cfg_attr(feature = "openapi", derive(ToSchema))]
+#[serde(rename_all = "snake_case")]
+pub enum DistanceSource {
+    /// From the four corners alone (perspective-n-point on a square).
+    Corners,
+    /// The corners' direction, with the distance measured by the depth image.
+    Depth,
+}
+
+/// A marker's pose in the camera frame (OpenCV: x right, y down, z forward). The marker frame
+/// has its origin at the marker centre, x to the right and y up as printed, z out of the face.
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+#[cfg_attr(feature = "openapi", derive(ToSchema))]
+pub struct MarkerPose {
+    /// Translation of camera_from_marker, metres.
+    pub translation_m: [f64; 3],
+    /// Rotation of camera_from_marker as a unit quaternion (x, y, z, w).
+    pub rotation_xyzw: [f64; 4],
+    /// RMS reprojection error of the four corners, pixels.
+    pub reprojection_error_px: f64,
+    pub distance_source: DistanceSource,
+    /// Distance along the centre ray measured in the depth image, when it had enough valid pixels.
+    pub depth_distance_m: Option<f64>,
+    /// Distance along the centre ray from the corners alone.
+    pub corners_distance_m: f64,
+}
+
+/// One detected marker.
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+#[cfg_attr(feature = "openapi", derive(ToSchema))]
+pub struct MarkerDetection {
+    pub id: i32,
+    /// Corners in pixels, in OpenCV's order: top-left, top-right, bottom-right, bottom-left of the
+    /// marker as printed.
+    pub corners_px: [[f32; 2]; 4],
+    /// Present when the camera model and marker side are known.
+    pub pose: Option<MarkerPose>,
+}
+
+/// `GET /api/v1/robots/{robot_id}/detections`: the markers of the robot's latest processed frame.
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+#[cfg_attr(feature = "openapi", derive(ToSchema))]
+pub struct FrameDetections {
+    pub robot_id: String,
+    pub session_id: String,
+    pub sequence: u64,
+    pub timestamp_ns: u64,
+    /// Size of the image the corners refer to, pixels.
+    pub image_width: u32,
+    pub image_height: u32,
+    pub markers: Vec<MarkerDetection>,
+}
+
+/// Body of every error answer.
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+#[cfg_attr(feature = "openapi", derive(ToSchema))]
+pub struct ApiError {
+    /// Machine-readable code, e.g. "robot_not_found".
+    pub error: String,
+    pub message: String,
+}

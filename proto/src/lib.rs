@@ -1,0 +1,21 @@
+//! Wire formats of vsgraphs: the protobuf messages robots publish, the zenoh key expressions they
+//! publish on, the depth codecs (RVL, 16-bit PNG), and the JSON types of the REST API (shared by
+//! the server and the SDK's client so the two cannot drift apart).
+//!
+//! This crate is shared by robots and the server, so it stays small and pure Rust: no OpenCV, no
+//! zenoh, no async runtime.
+
+pub mod api;
+pub mod keys;
+pub mod png16;
+pub mod rvl;
+
+/// The generated protobuf types (`vsgraphs.v1`).
+pub mod v1 {
+    include!(concat!(env!("OUT_DIR"), "/vsgraphs.v1.rs"));
+}
+
+pub use prost::Message;
+pub use v1::{
+    CameraModel, ColourEncoding, ColourImage, DepthEncoding, DepthImage, PixelFormat, RgbdFrame,
+};

@@ -1,0 +1,206 @@
+//! Streams a recorded [`Dataset`] through a [`Robot`], like a live camera would.
+//!
+//! Files are read and encoded on a blocking thread a few frames ahead of publishing, so disk
+//! and codec work never delays the network side. Timestamps are shifted so the first frame is
+//! stamped "now" (relative timing kept), which makes the server's latency figures meaningful.
+
+use crate::dataset::{Dataset, FrameFiles};
+use crate::encode;
+use crate::robot::{now_ns, Robot, RobotError};
+use std::path::PathBuf;
+use std::time::{Duration, Instant};
+use thiserror::Error;
+use tokio::sync::mpsc;
+use vsgraphs_proto::{png16, ColourEncoding, ColourImage, DepthEncoding, DepthImage, PixelFormat};
+
+/// How fast to play.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum Rate {
+    /// At the recorded pace.
+    RealTime,
+    /// As fast as frames can be read and sent.
+    Max,
+    /// At a fixed frame rate.
+    Hz(f64),
+}
+
+impl std::str::FromStr for Rate {
+    type Err = String;
+    fn from_str(s: &str) -> Result<Self, Self::Err> {
+        match s {
+            "realtime" | "real-time" => Ok(Rate::RealTime),
+            "max" => Ok(Rate::Max),
+            _ => match s.parse::<f64>() {
+                Ok(hz) if hz.is_finite() && hz > 0.0 => Ok(Rate::Hz(hz)),
+                _ => Err(format!("{s:?}: expected realtime, max or a positive frame rate in Hz")),
+            },
+        }
+    }
+}
+
+#[derive(Debug, Clone)]
+pub struct PlayOptions {
+    pub rate: Rate,
+    /// Depth codec on the wire; PNG16 sends the files' bytes unchanged.
+    pub depth_codec: DepthEncoding,
+    /// Times to play the sequence; 0 plays until the task is cancelled.
+    pub loops: u32,
+    /// Stop after this many frames in all.
+    pub limit: Option<usize>,
+    /// Keep the recorded timestamps instead of restamping from now.
+    pub original_timestamps: bool,
+}
+
+impl Default for PlayOptions {
+    fn default() -> Self {
+        Self { rate: Rate::RealTime, depth_codec: DepthEncoding::Rvl, loops: 1, limit: None, original_timestamps: false }
+    }
+}
+
+/// What a run sent.
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct PlaySummary {
+    pub frames_sent: u64,
+    pub bytes_sent: u64,
+    /// Frames whose files could not be read or encoded: skipped, with the reasons.
+    pub skipped: Vec<(PathBuf, String)>,
+    pub elapsed: Duration,
+    /// Size of the depth images on the wire against raw 16-bit, summed over frames.
+    pub depth_bytes: u64,
+    pub depth_raw_bytes: u64,
+}
+
+impl PlaySummary {
+    pub fn rate_hz(&self) -> f64 {
+        self.frames_sent as f64 / self.elapsed.as_secs_f64().max(1e-9)
+    }
+}
+
+#[derive(Debug, Error)]
+pub enum PlayError {
+    #[error(transparent)]
+    Robot(#[from] RobotError),
+}
+
+struct Loaded {
+    timestamp_ns: u64,
+    result: Result<(ColourImage, DepthImage, u64), String>,
+    files: FrameFiles,
+}
+
+/// Reads and encodes one frame's files.
+fn load(files: &FrameFiles, codec: DepthEncoding) -> Result<(ColourImage, DepthImage, u64), String> {
+    let colour_bytes = std::fs::read(&files.colour).map_err(|e| format!("{}: {e}", files.colour.display()))?;
+    let encoding = match files.colour.extension().and_then(|e| e.to_str()) {
+        Some("jpg" | "jpeg") => ColourEncoding::Jpeg,
+        Some("png") => ColourEncoding::Png,
+        other => return Err(format!("{}: unknown colour file type {other:?}", files.colour.display())),
+    };
+    let colour = ColourImage { encoding: encoding as i32, pixel_format: PixelFormat::Rgb8 as i32, data: colour_bytes };
+    let depth_bytes = std::fs::read(&files.depth).map_err(|e| format!("{}: {e}", files.depth.display()))?;
+    if codec == DepthEncoding::Png16 {
+        let raw = png16::decode(&depth_bytes).map(|d| d.data.len() as u64 * 2).unwrap_or(0);
+        return Ok((colour, DepthImage { encoding: DepthEncoding::Png16 as i32, data: depth_bytes }, raw));
+    }
+    let decoded = png16::decode(&depth_bytes).map_err(|e| format!("{}: {e}", files.depth.display()))?;
+    let depth = encode::depth(&decoded.data, decoded.width, decoded.height, codec)
+        .map_err(|e| format!("{}: {e}", files.depth.display()))?;
+    Ok((colour, depth, decoded.data.len() as u64 * 2))
+}
+
+/// Plays `dataset` through `robot`. `progress(sent, total)` is called after every frame
+/// (`total` is None when looping forever).
+pub async fn play(
+    robot: &Robot,
+    dataset: &Dataset,
+    options: &PlayOptions,
+    mut progress: impl FnMut(u64, Option<u64>),
+) -> Result<PlaySummary, PlayError> {
+    let per_loop = dataset.frames.len();
+    let total = match (options.loops, options.limit) {
+        (0, None) => None,
+        (0, Some(limit)) => Some(limit as u64),
+        (loops, limit) => Some((per_loop * loops as usize).min(limit.unwrap_or(usize::MAX)) as u64),
+    };
+    let (sender, mut receiver) = mpsc::channel::<Loaded>(4);
+    let frames = dataset.frames.clone();
+    let codec = options.depth_codec;
+    let loops = options.loops;
+    let limit = total;
+    let period_ns = frames.windows(2).map(|w| w[1].timestamp_ns.saturating_sub(w[0].timestamp_ns)).min().unwrap_or(33_333_333).max(1);
+    let loader = std::thread::Builder::new()
+        .name("dataset-loader".into())
+        .spawn(move || {
+            let mut sent = 0u64;
+            let mut loop_offset = 0u64;
+            for lap in 0.. {
+                if loops != 0 && lap >= loops {
+                    break;
+                }
+                for files in &frames {
+                    if limit.is_some_and(|l| sent >= l) {
+                        return;
+                    }
+                    let result = load(files, codec);
+                    let timestamp_ns = loop_offset + files.timestamp_ns - frames[0].timestamp_ns;
+                    let loaded = Loaded { timestamp_ns, result, files: files.clone() };
+                    if sender.blocking_send(loaded).is_err() {
+                        return;
+                    }
+                    sent += 1;
+                }
+                let span = frames.last().map_or(0, |f| f.timestamp_ns - frames[0].timestamp_ns);
+                loop_offset += span + period_ns;
+            }
+        })
+        .expect("a thread can be spawned");
+
+    let start = Instant::now();
+    let stamp_base = if options.original_timestamps { dataset.frames[0].timestamp_ns } else { now_ns() };
+    let mut summary = PlaySummary::default();
+    let mut attempted = 0u64;
+    while let Some(loaded) = receiver.recv().await {
+        let due = match options.rate {
+            Rate::RealTime => Some(Duration::from_nanos(loaded.timestamp_ns)),
+            Rate::Hz(hz) => Some(Duration::from_secs_f64(attempted as f64 / hz)),
+            Rate::Max => None,
+        };
+        if let Some(due) = due {
+            tokio::time::sleep_until(tokio::time::Instant::from_std(start + due)).await;
+        }
+        attempted += 1;
+        match loaded.result {
+            Ok((colour, depth, raw_depth)) => {
+                summary.depth_bytes += depth.data.len() as u64;
+                summary.depth_raw_bytes += raw_depth;
+                let (_, size) = robot
+                    .publish(stamp_base + loaded.timestamp_ns, dataset.camera.clone(), dataset.depth_scale, colour, depth)
+                    .await?;
+                summary.frames_sent += 1;
+                summary.bytes_sent += size as u64;
+            }
+            Err(reason) => {
+                tracing::warn!(%reason, "frame skipped");
+                summary.skipped.push((loaded.files.colour, reason));
+            }
+        }
+        progress(attempted, total);
+    }
+    summary.elapsed = start.elapsed();
+    let _ = loader.join();
+    Ok(summary)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn rates_parse() {
+        assert_eq!("max".parse::<Rate>(), Ok(Rate::Max));
+        assert_eq!("realtime".parse::<Rate>(), Ok(Rate::RealTime));
+        assert_eq!("15".parse::<Rate>(), Ok(Rate::Hz(15.0)));
+        assert!("0".parse::<Rate>().is_err());
+        assert!("fast".parse::<Rate>().is_err());
+    }
+}

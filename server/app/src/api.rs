@@ -1,0 +1,168 @@
+//! REST API under `/api/v1`, with its OpenAPI document at `/api/v1/openapi.json`.
+//!
+//! Handlers only read the registry's current state; they never wait on processing.
+
+use crate::robots::Registry;
+use axum::extract::{Path, State};
+use axum::http::StatusCode;
+use axum::response::{IntoResponse, Response};
+use axum::routing::get;
+use axum::{Json, Router};
+use std::sync::Arc;
+use utoipa::OpenApi;
+use vsgraphs_proto::api::{
+    ApiError, DistanceSource, FrameCounters, FrameDetections, Health, MarkerDetection, MarkerPose, Presence, Rejection,
+    RobotStatus, Timing,
+};
+
+/// An error answer: a status code and a JSON [`ApiError`] body.
+#[derive(Debug)]
+pub struct Failure {
+    pub status: StatusCode,
+    pub code: &'static str,
+    pub message: String,
+}
+
+impl Failure {
+    pub fn not_found(code: &'static str, message: impl Into<String>) -> Self {
+        Self { status: StatusCode::NOT_FOUND, code, message: message.into() }
+    }
+}
+
+impl IntoResponse for Failure {
+    fn into_response(self) -> Response {
+        let body = ApiError { error: self.code.into(), message: self.message };
+        (self.status, Json(body)).into_response()
+    }
+}
+
+#[derive(OpenApi)]
+#[openapi(
+    info(title = "vsgraphs", description = "Robots, their frames and their marker detections."),
+    paths(health, list_robots, get_robot, get_detections),
+    components(schemas(
+        Health, RobotStatus, Presence, FrameCounters, Timing, Rejection, FrameDetections, MarkerDetection,
+        MarkerPose, DistanceSource, ApiError
+    ))
+)]
+struct ApiDoc;
+
+/// The OpenAPI document of this API.
+pub fn openapi_json() -> String {
+    ApiDoc::openapi().to_pretty_json().expect("the OpenAPI document serialises")
+}
+
+/// The `/api/v1` routes.
+pub fn router(registry: Arc<Registry>) -> Router {
+    Router::new()
+        .route("/api/v1/health", get(health))
+        .route("/api/v1/robots", get(list_robots))
+        .route("/api/v1/robots/{robot_id}", get(get_robot))
+        .route("/api/v1/robots/{robot_id}/detections", get(get_detections))
+        .route("/api/v1/openapi.json", get(|| async { ([("content-type", "application/json")], openapi_json()) }))
+        .route("/api/{*rest}", get(unknown_endpoint))
+        .with_state(registry)
+}
+
+async fn unknown_endpoint(Path(rest): Path<String>) -> Failure {
+    Failure::not_found("no_such_endpoint", format!("/api/{rest} is not an endpoint; see /api/v1/openapi.json"))
+}
+
+/// Server health and counts.
+#[utoipa::path(get, path = "/api/v1/health", responses((status = 200, body = Health)))]
+async fn health(State(registry): State<Arc<Registry>>) -> Json<Health> {
+    Json(Health {
+        status: "ok".into(),
+        version: env!("CARGO_PKG_VERSION").into(),
+        uptime_s: registry.started.elapsed().as_secs_f64(),
+        robots: registry.len(),
+        frames_on_bad_keys: registry.frames_on_bad_keys.load(std::sync::atomic::Ordering::Relaxed),
+    })
+}
+
+/// Every robot the server has heard of, online or not.
+#[utoipa::path(get, path = "/api/v1/robots", responses((status = 200, body = [RobotStatus])))]
+async fn list_robots(State(registry): State<Arc<Registry>>) -> Json<Vec<RobotStatus>> {
+    Json(registry.all().iter().map(|r| r.status()).collect())
+}
+
+/// One robot: presence, frame counters, rejections and timing.
+#[utoipa::path(
+    get,
+    path = "/api/v1/robots/{robot_id}",
+    params(("robot_id" = String, Path, description = "The robot's id")),
+    responses((status = 200, body = RobotStatus), (status = 404, body = ApiError))
+)]
+async fn get_robot(State(registry): State<Arc<Registry>>, Path(robot_id): Path<String>) -> Result<Json<RobotStatus>, Failure> {
+    let robot = registry.get(&robot_id).ok_or_else(|| unknown_robot(&robot_id))?;
+    Ok(Json(robot.status()))
+}
+
+/// The markers detected in the robot's latest processed frame.
+#[utoipa::path(
+    get,
+    path = "/api/v1/robots/{robot_id}/detections",
+    params(("robot_id" = String, Path, description = "The robot's id")),
+    responses(
+        (status = 200, body = FrameDetections),
+        (status = 404, body = ApiError, description = "unknown robot, or no frame processed yet")
+    )
+)]
+async fn get_detections(
+    State(registry): State<Arc<Registry>>,
+    Path(robot_id): Path<String>,
+) -> Result<Json<FrameDetections>, Failure> {
+    let robot = registry.get(&robot_id).ok_or_else(|| unknown_robot(&robot_id))?;
+    let latest = robot.latest_detections().ok_or_else(|| {
+        Failure::not_found("no_frame_processed", format!("robot {robot_id:?} has no processed frame yet"))
+    })?;
+    Ok(Json((*latest).clone()))
+}
+
+fn unknown_robot(robot_id: &str) -> Failure {
+    Failure::not_found("robot_not_found", format!("no robot {robot_id:?} has been seen"))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use axum::body::Body;
+    use axum::http::Request;
+    use tower::ServiceExt;
+
+    async fn get_json(app: Router, uri: &str) -> (StatusCode, serde_json::Value) {
+        let response = app.oneshot(Request::get(uri).body(Body::empty()).unwrap()).await.unwrap();
+        let status = response.status();
+        let bytes = axum::body::to_bytes(response.into_body(), 1 << 20).await.unwrap();
+        (status, serde_json::from_slice(&bytes).unwrap())
+    }
+
+    #[tokio::test]
+    async fn unknown_things_are_json_404s() {
+        let registry = Arc::new(Registry::new(4, 4, true));
+        registry.get_or_insert("known").unwrap();
+        let app = router(registry);
+        let (status, body) = get_json(app.clone(), "/api/v1/robots/ghost").await;
+        assert_eq!((status, body["error"].as_str()), (StatusCode::NOT_FOUND, Some("robot_not_found")));
+        let (status, body) = get_json(app.clone(), "/api/v1/robots/known/detections").await;
+        assert_eq!((status, body["error"].as_str()), (StatusCode::NOT_FOUND, Some("no_frame_processed")));
+        let (status, body) = get_json(app.clone(), "/api/v1/nothing/here").await;
+        assert_eq!((status, body["error"].as_str()), (StatusCode::NOT_FOUND, Some("no_such_endpoint")));
+        let (status, body) = get_json(app, "/api/v1/robots").await;
+        assert_eq!(status, StatusCode::OK);
+        assert_eq!(body[0]["robot_id"], "known");
+        assert_eq!(body[0]["presence"], "unknown");
+    }
+
+    #[tokio::test]
+    async fn openapi_lists_every_route() {
+        let registry = Arc::new(Registry::new(4, 4, true));
+        let (status, doc) = get_json(router(registry), "/api/v1/openapi.json").await;
+        assert_eq!(status, StatusCode::OK);
+        let paths = doc["paths"].as_object().unwrap();
+        for path in ["/api/v1/health", "/api/v1/robots", "/api/v1/robots/{robot_id}", "/api/v1/robots/{robot_id}/detections"] {
+            assert!(paths.contains_key(path), "{path} missing from {:?}", paths.keys());
+        }
+        assert!(doc["components"]["schemas"]["RobotStatus"].is_object());
+    }
+}

@@ -1,0 +1,161 @@
+//! The server's one configuration file (TOML). `config/vsgraphs.toml` documents every field with
+//! its default; a test keeps that file and [`Config::default`] equal.
+
+use serde::{Deserialize, Serialize};
+use std::net::SocketAddr;
+use std::path::{Path, PathBuf};
+use thiserror::Error;
+pub use vsgraphs_sdk::zenoh_config::ZenohSettings;
+use vsgraphs_vision::aruco::CornerRefinement;
+
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct Config {
+    pub http: HttpConfig,
+    pub zenoh: ZenohSettings,
+    pub ingest: IngestConfig,
+    pub markers: MarkerConfig,
+}
+
+impl Default for Config {
+    fn default() -> Self {
+        Self {
+            http: HttpConfig::default(),
+            zenoh: ZenohSettings { listen: vec!["tcp/0.0.0.0:7447".into()], ..ZenohSettings::default() },
+            ingest: IngestConfig::default(),
+            markers: MarkerConfig::default(),
+        }
+    }
+}
+
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct HttpConfig {
+    pub listen: SocketAddr,
+}
+
+impl Default for HttpConfig {
+    fn default() -> Self {
+        Self { listen: SocketAddr::from(([127, 0, 0, 1], 8080)) }
+    }
+}
+
+/// What a full robot queue does with a new frame.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum DropPolicy {
+    /// Discard the oldest queued frame: a live robot's newest frame is worth the most.
+    DropOldest,
+    /// Discard the arriving frame.
+    DropNewest,
+}
+
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct IngestConfig {
+    pub queue_capacity: usize,
+    pub drop_policy: DropPolicy,
+    pub max_robots: usize,
+    pub max_frame_bytes: usize,
+}
+
+impl Default for IngestConfig {
+    fn default() -> Self {
+        Self { queue_capacity: 4, drop_policy: DropPolicy::DropOldest, max_robots: 64, max_frame_bytes: 32 << 20 }
+    }
+}
+
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct MarkerConfig {
+    pub dictionary: String,
+    pub dictionary_file: PathBuf,
+    pub side_m: f64,
+    pub corner_refinement: CornerRefinement,
+    pub depth_refinement: bool,
+    pub depth_agreement: f64,
+}
+
+impl Default for MarkerConfig {
+    fn default() -> Self {
+        Self {
+            dictionary: "DICT_4X4_100".into(),
+            dictionary_file: PathBuf::new(),
+            side_m: 0.08,
+            corner_refinement: CornerRefinement::Subpixel,
+            depth_refinement: true,
+            depth_agreement: 0.15,
+        }
+    }
+}
+
+#[derive(Debug, Error)]
+pub enum ConfigError {
+    #[error("cannot read {path}: {source}")]
+    Io { path: PathBuf, source: std::io::Error },
+    #[error("{path}: {source}")]
+    Parse { path: PathBuf, source: toml::de::Error },
+    #[error("{field}: {message}")]
+    Invalid { field: &'static str, message: String },
+}
+
+impl Config {
+    /// Reads a configuration file; fields it leaves out keep their defaults.
+    pub fn load(path: &Path) -> Result<Self, ConfigError> {
+        let text = std::fs::read_to_string(path).map_err(|source| ConfigError::Io { path: path.to_owned(), source })?;
+        let config: Config = toml::from_str(&text).map_err(|source| ConfigError::Parse { path: path.to_owned(), source })?;
+        config.validate()?;
+        Ok(config)
+    }
+
+    /// Checks values that parse but cannot work.
+    pub fn validate(&self) -> Result<(), ConfigError> {
+        let invalid = |field, message: String| Err(ConfigError::Invalid { field, message });
+        if self.ingest.queue_capacity == 0 {
+            return invalid("ingest.queue_capacity", "must be at least 1".into());
+        }
+        if self.ingest.max_robots == 0 {
+            return invalid("ingest.max_robots", "must be at least 1".into());
+        }
+        if self.ingest.max_frame_bytes < 1024 {
+            return invalid("ingest.max_frame_bytes", "must be at least 1024".into());
+        }
+        if !(self.markers.side_m.is_finite() && self.markers.side_m > 0.0) {
+            return invalid("markers.side_m", format!("{} is not a positive length in metres", self.markers.side_m));
+        }
+        if !(self.markers.depth_agreement.is_finite() && self.markers.depth_agreement > 0.0) {
+            return invalid("markers.depth_agreement", "must be a positive fraction".into());
+        }
+        if let Err(e) = self.zenoh.to_config() {
+            return invalid("zenoh", e.to_string());
+        }
+        Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn documented_file_equals_the_defaults() {
+        let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../config/vsgraphs.toml");
+        assert_eq!(Config::load(&path).unwrap(), Config::default());
+    }
+
+    #[test]
+    fn broken_files_say_what_is_wrong() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("c.toml");
+        std::fs::write(&path, "[ingest]\nqueue_capacty = 3\n").unwrap();
+        let message = Config::load(&path).unwrap_err().to_string();
+        assert!(message.contains("queue_capacty"), "{message}");
+        std::fs::write(&path, "[markers]\nside_m = -1.0\n").unwrap();
+        assert!(Config::load(&path).unwrap_err().to_string().contains("markers.side_m"));
+        std::fs::write(&path, "[ingest]\ndrop_policy = \"sometimes\"\n").unwrap();
+        assert!(Config::load(&path).unwrap_err().to_string().contains("sometimes"));
+        std::fs::write(&path, "[http]\nlisten = \"127.0.0.1:9000\"\n").unwrap();
+        assert_eq!(Config::load(&path).unwrap().http.listen.port(), 9000);
+        assert!(matches!(Config::load(&dir.path().join("missing.toml")), Err(ConfigError::Io { .. })));
+    }
+}

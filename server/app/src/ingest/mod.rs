@@ -1,0 +1,246 @@
+//! Ingest: zenoh subscriptions for frames and robot presence, one bounded queue and one worker
+//! thread per robot.
+//!
+//! The zenoh callbacks only look up the robot and enqueue bytes, so a slow or hostile robot can
+//! never stall zenoh's threads or another robot. Workers decode and detect (see `pipeline`).
+
+pub mod queue;
+
+use crate::config::Config;
+use crate::pipeline::{FrameHeader, FrameProcessor};
+use crate::robots::{now_ns, Registry, RobotEntry};
+use queue::{Arrival, Pushed};
+use std::panic::{catch_unwind, AssertUnwindSafe};
+use std::sync::atomic::Ordering;
+use std::sync::{Arc, Mutex};
+use std::thread::JoinHandle;
+use std::time::Duration;
+use vsgraphs_proto::api::{self, FrameDetections, Presence};
+use vsgraphs_proto::keys;
+use zenoh::sample::SampleKind;
+
+/// The running ingest: subscriptions and worker threads.
+pub struct Ingest {
+    _frames: zenoh::pubsub::Subscriber<()>,
+    _presence: zenoh::pubsub::Subscriber<()>,
+    workers: Arc<Workers>,
+}
+
+struct Workers {
+    registry: Arc<Registry>,
+    config: Arc<Config>,
+    handles: Mutex<Vec<JoinHandle<()>>>,
+}
+
+impl Workers {
+    /// The robot's entry, with its worker started when it is new.
+    fn robot(self: &Arc<Self>, robot_id: &str) -> Option<Arc<RobotEntry>> {
+        if keys::validate_robot_id(robot_id).is_err() {
+            return None;
+        }
+        let (entry, created) = self.registry.get_or_insert(robot_id).ok()?;
+        if created {
+            let worker_entry = entry.clone();
+            let config = self.config.clone();
+            let spawned = std::thread::Builder::new()
+                .name(format!("robot-{robot_id}"))
+                .spawn(move || run_worker(worker_entry, &config));
+            match spawned {
+                Ok(handle) => self.handles.lock().unwrap_or_else(|p| p.into_inner()).push(handle),
+                Err(e) => tracing::error!(robot_id, error = %e, "cannot start the robot's worker thread"),
+            }
+        }
+        Some(entry)
+    }
+}
+
+impl Ingest {
+    /// Subscribes to every robot's frames and liveliness on `session`.
+    pub async fn start(session: &zenoh::Session, registry: Arc<Registry>, config: Arc<Config>) -> zenoh::Result<Self> {
+        let workers = Arc::new(Workers { registry: registry.clone(), config, handles: Mutex::new(Vec::new()) });
+        let frame_workers = workers.clone();
+        let frames = session
+            .declare_subscriber(keys::ALL_FRAMES)
+            .callback(move |sample| {
+                let robot = keys::robot_id_of(sample.key_expr().as_str()).and_then(|id| frame_workers.robot(id));
+                let Some(robot) = robot else {
+                    frame_workers.registry.frames_on_bad_keys.fetch_add(1, Ordering::Relaxed);
+                    return;
+                };
+                robot.record_arrival();
+                let arrival = Arrival {
+                    bytes: sample.payload().to_bytes().into_owned(),
+                    received_ns: now_ns(),
+                    dropped_before: 0,
+                };
+                if robot.queue.push(arrival) == Pushed::DroppedOne {
+                    robot.record_dropped();
+                }
+            })
+            .await?;
+        let presence_workers = workers.clone();
+        let presence = session
+            .liveliness()
+            .declare_subscriber(keys::ALL_ALIVE)
+            .history(true)
+            .callback(move |sample| {
+                let key = sample.key_expr().as_str();
+                let Some(robot) = keys::robot_id_of(key).and_then(|id| presence_workers.robot(id)) else {
+                    tracing::warn!(key, "liveliness token with an unusable robot id");
+                    return;
+                };
+                let presence = match sample.kind() {
+                    SampleKind::Put => Presence::Online,
+                    SampleKind::Delete => Presence::Offline,
+                };
+                tracing::info!(robot_id = robot.robot_id, ?presence, "presence changed");
+                robot.set_presence(presence);
+            })
+            .await?;
+        Ok(Self { _frames: frames, _presence: presence, workers })
+    }
+
+    /// Stops accepting frames, lets workers finish what is queued, and joins them.
+    pub fn stop(self) {
+        for robot in self.workers.registry.all() {
+            robot.queue.close();
+        }
+        let handles = std::mem::take(&mut *self.workers.handles.lock().unwrap_or_else(|p| p.into_inner()));
+        for handle in handles {
+            let _ = handle.join();
+        }
+    }
+}
+
+/// Per-robot bookkeeping of the worker: the last accepted frame and frames with no readable
+/// sequence number since, to tell losses in transit from frames accounted for here.
+#[derive(Default)]
+struct Continuity {
+    previous: Option<FrameHeader>,
+    unsequenced_since: u64,
+    dropped_since: u64,
+}
+
+impl Continuity {
+    /// Accounts for a frame with a readable sequence number (of the previous frame's session
+    /// when `session_id` is None) and returns how many frames before it never arrived.
+    fn advance(&mut self, session_id: Option<&str>, sequence: u64) -> u64 {
+        let Some(previous) = self.previous.as_mut() else { return 0 };
+        let same_session = session_id.is_none_or(|s| s == previous.session_id);
+        if !same_session || sequence <= previous.sequence {
+            return 0;
+        }
+        let lost = (sequence - previous.sequence - 1).saturating_sub(self.dropped_since + self.unsequenced_since);
+        previous.sequence = sequence;
+        self.dropped_since = 0;
+        self.unsequenced_since = 0;
+        lost
+    }
+}
+
+fn run_worker(robot: Arc<RobotEntry>, config: &Config) {
+    let span = tracing::info_span!("robot", robot_id = robot.robot_id);
+    let _entered = span.enter();
+    let mut processor = match FrameProcessor::new(&config.markers, config.ingest.max_frame_bytes) {
+        Ok(processor) => processor,
+        Err(e) => {
+            // The configuration was checked at start-up, so this is not expected; say so loudly.
+            tracing::error!(error = %e, "cannot set up frame processing; this robot's frames are dropped");
+            return;
+        }
+    };
+    let mut continuity = Continuity::default();
+    loop {
+        let Some(arrival) = robot.queue.pop(Duration::from_millis(250)) else {
+            if robot.queue.is_closed() {
+                break;
+            }
+            continue;
+        };
+        continuity.dropped_since += arrival.dropped_before;
+        let outcome = catch_unwind(AssertUnwindSafe(|| {
+            processor.process(&robot.robot_id, &arrival.bytes, continuity.previous.as_ref())
+        }));
+        match outcome {
+            Ok(Ok(processed)) => {
+                let lost = continuity.advance(Some(&processed.session_id), processed.sequence);
+                if lost > 0 {
+                    tracing::warn!(lost, sequence = processed.sequence, "frames lost in transit");
+                    robot.record_lost(lost);
+                }
+                robot.record_session(&processed.session_id);
+                continuity.previous = Some(FrameHeader {
+                    session_id: processed.session_id.clone(),
+                    sequence: processed.sequence,
+                    timestamp_ns: processed.timestamp_ns,
+                });
+                continuity.dropped_since = 0;
+                continuity.unsequenced_since = 0;
+                robot.record_processed(
+                    FrameDetections {
+                        robot_id: robot.robot_id.clone(),
+                        session_id: processed.session_id,
+                        sequence: processed.sequence,
+                        timestamp_ns: processed.timestamp_ns,
+                        image_width: processed.image_width,
+                        image_height: processed.image_height,
+                        markers: processed.markers,
+                    },
+                    processed.processing,
+                );
+            }
+            Ok(Err(rejection)) => {
+                tracing::debug!(reason = rejection.reason.code(), message = rejection.message, "frame rejected");
+                // A rejected frame with a sequence number still fills its place in the sequence.
+                match rejection.sequence {
+                    Some(sequence) => robot.record_lost(continuity.advance(None, sequence)),
+                    None => continuity.unsequenced_since += 1,
+                }
+                robot.record_rejection(api::Rejection {
+                    reason: rejection.reason.code().into(),
+                    message: rejection.message,
+                    sequence: rejection.sequence,
+                    at_ns: now_ns(),
+                });
+            }
+            Err(panic) => {
+                let message = panic
+                    .downcast_ref::<&str>()
+                    .map(|s| s.to_string())
+                    .or_else(|| panic.downcast_ref::<String>().cloned())
+                    .unwrap_or_else(|| "unknown panic".into());
+                tracing::error!(message, "frame processing panicked; frame rejected");
+                continuity.unsequenced_since += 1;
+                robot.record_rejection(api::Rejection {
+                    reason: "internal".into(),
+                    message: format!("internal error while processing: {message}"),
+                    sequence: None,
+                    at_ns: now_ns(),
+                });
+            }
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn header(session: &str, sequence: u64) -> Option<FrameHeader> {
+        Some(FrameHeader { session_id: session.into(), sequence, timestamp_ns: 1 })
+    }
+
+    #[test]
+    fn gaps_not_explained_by_drops_are_lost() {
+        let mut c = Continuity { previous: header("s", 10), ..Default::default() };
+        assert_eq!(c.advance(Some("s"), 11), 0);
+        c.dropped_since = 2;
+        assert_eq!(c.advance(Some("s"), 15), 1);
+        c.unsequenced_since = 1;
+        assert_eq!(c.advance(None, 17), 0);
+        // A new session restarts the count; an old sequence number is ignored.
+        assert_eq!(c.advance(Some("t"), 5), 0);
+        assert_eq!(c.advance(Some("s"), 3), 0);
+        assert_eq!(Continuity::default().advance(Some("s"), 100), 0);
+    }
+}

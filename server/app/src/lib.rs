@@ -1,0 +1,87 @@
+//! The vsgraphs mapping server: receives robots' RGB-D frames over zenoh, validates and decodes
+//! them, detects ArUco markers, tracks robot presence, and serves it all through a REST API and
+//! a web page.
+//!
+//! Threads: zenoh's own for the network, tokio for HTTP, and one named worker thread per robot
+//! for CPU work. See ARCHITECTURE.md.
+
+pub mod api;
+pub mod config;
+pub mod detect;
+pub mod ingest;
+pub mod pipeline;
+pub mod robots;
+pub mod simulate;
+pub mod web;
+
+use anyhow::Context;
+use config::{Config, DropPolicy};
+use ingest::Ingest;
+use robots::Registry;
+use std::net::SocketAddr;
+use std::sync::Arc;
+use tokio::sync::oneshot;
+use tokio::task::JoinHandle;
+
+/// A running server. Dropping it without [`Server::stop`] leaves its tasks to the runtime.
+pub struct Server {
+    pub registry: Arc<Registry>,
+    http_addr: SocketAddr,
+    ingest: Ingest,
+    session: zenoh::Session,
+    http: JoinHandle<std::io::Result<()>>,
+    stop_http: oneshot::Sender<()>,
+}
+
+impl Server {
+    /// Checks the configuration, opens zenoh, starts ingest and the HTTP server.
+    pub async fn start(config: Config) -> anyhow::Result<Self> {
+        config.validate()?;
+        // Fail now, not in the first robot's worker, if the marker dictionary cannot load.
+        pipeline::FrameProcessor::new(&config.markers, config.ingest.max_frame_bytes)
+            .context("setting up marker detection")?;
+        let registry = Arc::new(Registry::new(
+            config.ingest.max_robots,
+            config.ingest.queue_capacity,
+            config.ingest.drop_policy == DropPolicy::DropOldest,
+        ));
+        let zenoh_config = config.zenoh.to_config()?;
+        let session = zenoh::open(zenoh_config)
+            .await
+            .map_err(|e| anyhow::anyhow!("opening zenoh on {:?}: {e}", config.zenoh.listen))?;
+        let listener = tokio::net::TcpListener::bind(config.http.listen)
+            .await
+            .with_context(|| format!("binding HTTP to {}", config.http.listen))?;
+        let http_addr = listener.local_addr()?;
+        let config = Arc::new(config);
+        let ingest = Ingest::start(&session, registry.clone(), config.clone())
+            .await
+            .map_err(|e| anyhow::anyhow!("subscribing on zenoh: {e}"))?;
+        let app = api::router(registry.clone()).merge(web::router());
+        let (stop_http, stopped) = oneshot::channel();
+        let http = tokio::spawn(async move {
+            axum::serve(listener, app)
+                .with_graceful_shutdown(async {
+                    let _ = stopped.await;
+                })
+                .await
+        });
+        tracing::info!(%http_addr, zenoh = ?config.zenoh.listen, "server started");
+        Ok(Self { registry, http_addr, ingest, session, http, stop_http })
+    }
+
+    /// Where the REST API and the page are served.
+    pub fn http_addr(&self) -> SocketAddr {
+        self.http_addr
+    }
+
+    /// Closes zenoh, drains the robots' queues, and stops HTTP.
+    pub async fn stop(self) -> anyhow::Result<()> {
+        let Server { ingest, session, http, stop_http, .. } = self;
+        session.close().await.map_err(|e| anyhow::anyhow!("closing zenoh: {e}"))?;
+        tokio::task::spawn_blocking(move || ingest.stop()).await?;
+        let _ = stop_http.send(());
+        http.await??;
+        Ok(())
+    }
+}

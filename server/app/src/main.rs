@@ -1,0 +1,160 @@
+//! `vsgraphs-server`: the mapping server (default), plus `detect` to check a photo and a camera
+//! set-up without a robot, and `print-config` to show the effective configuration.
+
+use anyhow::Context;
+use clap::{Parser, Subcommand};
+use std::net::SocketAddr;
+use std::path::PathBuf;
+use vsgraphs_server::config::Config;
+use vsgraphs_server::{detect, Server};
+use vsgraphs_vision::aruco::CornerRefinement;
+
+#[derive(Parser)]
+#[command(version, about = "vsgraphs mapping server: RGB-D frames in over zenoh, building model out over REST")]
+struct Cli {
+    /// Configuration file (TOML); see config/vsgraphs.toml for every field and its default.
+    #[arg(long, env = "VSGRAPHS_CONFIG", global = true)]
+    config: Option<PathBuf>,
+    #[command(flatten)]
+    overrides: Overrides,
+    #[command(subcommand)]
+    command: Option<Command>,
+}
+
+/// Flags that override the configuration file.
+#[derive(clap::Args)]
+struct Overrides {
+    /// HTTP address of the API and page, e.g. 0.0.0.0:8080.
+    #[arg(long, global = true)]
+    http_listen: Option<SocketAddr>,
+    /// zenoh endpoint to listen on (repeatable), e.g. tcp/0.0.0.0:7447.
+    #[arg(long, global = true)]
+    zenoh_listen: Vec<String>,
+    /// zenoh router or peer to connect to (repeatable).
+    #[arg(long, global = true)]
+    zenoh_connect: Vec<String>,
+    /// Disable UDP multicast scouting.
+    #[arg(long, global = true)]
+    no_scouting: bool,
+    /// Marker dictionary by OpenCV name, e.g. DICT_6X6_250.
+    #[arg(long, global = true)]
+    dictionary: Option<String>,
+    /// Custom marker dictionary file (OpenCV FileStorage YAML).
+    #[arg(long, global = true)]
+    dictionary_file: Option<PathBuf>,
+    /// Marker side length in metres.
+    #[arg(long, global = true)]
+    marker_side: Option<f64>,
+}
+
+#[derive(Subcommand)]
+enum Command {
+    /// Run the server (the default).
+    Serve,
+    /// Detect markers in a photo and print them as JSON.
+    Detect {
+        image: PathBuf,
+        /// Camera in OpenCV FileStorage YAML (camera_matrix, distortion_coefficients); with
+        /// --marker-side, poses are printed too.
+        #[arg(long)]
+        camera: Option<PathBuf>,
+        /// Corner refinement: subpixel, contour or none.
+        #[arg(long, default_value = "subpixel", value_parser = parse_refinement)]
+        refinement: CornerRefinement,
+    },
+    /// Print the effective configuration as TOML.
+    PrintConfig,
+    /// Act as a robot that streams rendered markers (for demos and deployment checks).
+    SimulateMarkers {
+        #[arg(long, default_value = "marker-cam")]
+        robot_id: String,
+        /// zenoh endpoint of the server.
+        #[arg(long, default_value = "tcp/127.0.0.1:7447")]
+        connect: String,
+        /// Frames per second.
+        #[arg(long, default_value_t = 15.0)]
+        rate: f64,
+    },
+}
+
+fn parse_refinement(s: &str) -> Result<CornerRefinement, String> {
+    match s {
+        "subpixel" => Ok(CornerRefinement::Subpixel),
+        "contour" => Ok(CornerRefinement::Contour),
+        "none" => Ok(CornerRefinement::None),
+        _ => Err(format!("{s:?}: expected subpixel, contour or none")),
+    }
+}
+
+fn effective_config(cli: &Cli) -> anyhow::Result<Config> {
+    let mut config = match &cli.config {
+        Some(path) => Config::load(path)?,
+        None => Config::default(),
+    };
+    let o = &cli.overrides;
+    if let Some(addr) = o.http_listen {
+        config.http.listen = addr;
+    }
+    if !o.zenoh_listen.is_empty() {
+        config.zenoh.listen = o.zenoh_listen.clone();
+    }
+    if !o.zenoh_connect.is_empty() {
+        config.zenoh.connect = o.zenoh_connect.clone();
+    }
+    if o.no_scouting {
+        config.zenoh.multicast_scouting = false;
+    }
+    if let Some(name) = &o.dictionary {
+        config.markers.dictionary = name.clone();
+        config.markers.dictionary_file = PathBuf::new();
+    }
+    if let Some(file) = &o.dictionary_file {
+        config.markers.dictionary_file = file.clone();
+    }
+    if let Some(side) = o.marker_side {
+        config.markers.side_m = side;
+    }
+    config.validate()?;
+    Ok(config)
+}
+
+#[tokio::main]
+async fn main() -> anyhow::Result<()> {
+    tracing_subscriber::fmt()
+        .with_env_filter(
+            tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| "info,zenoh=warn".into()),
+        )
+        .with_writer(std::io::stderr)
+        .init();
+    let cli = Cli::parse();
+    let config = effective_config(&cli)?;
+    match cli.command.unwrap_or(Command::Serve) {
+        Command::Serve => {
+            let server = Server::start(config).await?;
+            println!("vsgraphs server: page and API at http://{}/ (Ctrl-C stops)", server.http_addr());
+            tokio::signal::ctrl_c().await.context("waiting for Ctrl-C")?;
+            eprintln!("stopping");
+            server.stop().await?;
+        }
+        Command::Detect { image, camera, refinement } => {
+            let dictionary = vsgraphs_server::pipeline::load_dictionary(&config.markers)?;
+            let side = cli.overrides.marker_side.or(camera.as_ref().map(|_| config.markers.side_m));
+            let report = tokio::task::spawn_blocking(move || {
+                detect::detect_image(&image, dictionary, refinement, camera.as_deref(), side)
+            })
+            .await??;
+            println!("{}", serde_json::to_string_pretty(&report)?);
+        }
+        Command::PrintConfig => print!("{}", toml::to_string_pretty(&config)?),
+        Command::SimulateMarkers { robot_id, connect, rate } => {
+            let dictionary = vsgraphs_server::pipeline::load_dictionary(&config.markers)?;
+            let robot = vsgraphs_sdk::Robot::connect(vsgraphs_sdk::RobotConfig::connecting_to(&robot_id, connect)).await?;
+            println!("{robot_id}: streaming rendered {} markers at {rate} Hz (Ctrl-C stops)", dictionary.name);
+            tokio::select! {
+                result = vsgraphs_server::simulate::simulate_markers(robot, dictionary, config.markers.side_m, rate) => result?,
+                _ = tokio::signal::ctrl_c() => {}
+            }
+        }
+    }
+    Ok(())
+}

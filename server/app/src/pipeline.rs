@@ -1,0 +1,250 @@
+//! One frame's way from bytes to marker detections: protobuf decoding, validation, image
+//! decoding, ArUco detection and marker poses. Runs on a robot's worker thread, never on the
+//! async runtime; every failure is a [`Rejection`] with a reason code and a readable message.
+
+use crate::config::MarkerConfig;
+use std::time::{Duration, Instant};
+use vsgraphs_proto::api::{DistanceSource, MarkerDetection, MarkerPose};
+use vsgraphs_proto::{keys, Message, RgbdFrame};
+use vsgraphs_vision::aruco::MarkerDetector;
+use vsgraphs_vision::camera::PinholeCamera;
+use vsgraphs_vision::decode::{self, DecodeError};
+use vsgraphs_vision::dictionary::{DictionaryError, MarkerDictionary};
+use vsgraphs_vision::pose::{MarkerPoseEstimate, PoseEstimator};
+
+/// Why a frame was refused. The snake_case names are the codes counted per robot in the API.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord)]
+pub enum Reason {
+    /// Not a protobuf `RgbdFrame`.
+    Malformed,
+    TooLarge,
+    RobotIdMismatch,
+    MissingField,
+    BadCamera,
+    BadDepthScale,
+    BadTimestamp,
+    /// Timestamp not after the previous frame's in the same session.
+    TimestampNotIncreasing,
+    UnknownEncoding,
+    ColourDecode,
+    DepthDecode,
+    SizeMismatch,
+    Detection,
+}
+
+impl Reason {
+    pub fn code(self) -> &'static str {
+        match self {
+            Reason::Malformed => "malformed",
+            Reason::TooLarge => "too_large",
+            Reason::RobotIdMismatch => "robot_id_mismatch",
+            Reason::MissingField => "missing_field",
+            Reason::BadCamera => "bad_camera",
+            Reason::BadDepthScale => "bad_depth_scale",
+            Reason::BadTimestamp => "bad_timestamp",
+            Reason::TimestampNotIncreasing => "timestamp_not_increasing",
+            Reason::UnknownEncoding => "unknown_encoding",
+            Reason::ColourDecode => "colour_decode",
+            Reason::DepthDecode => "depth_decode",
+            Reason::SizeMismatch => "size_mismatch",
+            Reason::Detection => "detection",
+        }
+    }
+}
+
+/// A refused frame.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Rejection {
+    pub reason: Reason,
+    pub message: String,
+    /// Known when the protobuf could be read.
+    pub sequence: Option<u64>,
+}
+
+fn reject(reason: Reason, message: impl Into<String>, sequence: Option<u64>) -> Rejection {
+    Rejection { reason, message: message.into(), sequence }
+}
+
+/// A frame after validation and detection.
+#[derive(Debug, Clone)]
+pub struct Processed {
+    pub session_id: String,
+    pub sequence: u64,
+    pub timestamp_ns: u64,
+    pub image_width: u32,
+    pub image_height: u32,
+    pub markers: Vec<MarkerDetection>,
+    pub processing: Duration,
+}
+
+/// The header of a readable frame, for sequence and timestamp bookkeeping.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct FrameHeader {
+    pub session_id: String,
+    pub sequence: u64,
+    pub timestamp_ns: u64,
+}
+
+/// Frame processing state of one worker thread (OpenCV objects are per thread).
+pub struct FrameProcessor {
+    detector: MarkerDetector,
+    settings: MarkerConfig,
+    max_frame_bytes: usize,
+    /// Pose estimation is set up per camera model; robots rarely change theirs.
+    estimator: Option<PoseEstimator>,
+}
+
+impl FrameProcessor {
+    pub fn new(settings: &MarkerConfig, max_frame_bytes: usize) -> Result<Self, DictionaryError> {
+        let dictionary = load_dictionary(settings)?;
+        let detector = MarkerDetector::new(dictionary, settings.corner_refinement)?;
+        Ok(Self { detector, settings: settings.clone(), max_frame_bytes, estimator: None })
+    }
+
+    /// Decodes the protobuf and checks everything but the image contents.
+    pub fn parse(&self, robot_id: &str, bytes: &[u8]) -> Result<RgbdFrame, Rejection> {
+        if bytes.len() > self.max_frame_bytes {
+            return Err(reject(
+                Reason::TooLarge,
+                format!("frame of {} bytes exceeds the {} allowed", bytes.len(), self.max_frame_bytes),
+                None,
+            ));
+        }
+        let frame = RgbdFrame::decode(bytes)
+            .map_err(|e| reject(Reason::Malformed, format!("not an RgbdFrame: {e}"), None))?;
+        let sequence = Some(frame.sequence);
+        if frame.robot_id != robot_id {
+            return Err(reject(
+                Reason::RobotIdMismatch,
+                format!("frame names robot {:?} but was published on {}", frame.robot_id, keys::frames(robot_id)),
+                sequence,
+            ));
+        }
+        if frame.session_id.is_empty() {
+            return Err(reject(Reason::MissingField, "session_id is empty", sequence));
+        }
+        if frame.timestamp_ns == 0 {
+            return Err(reject(Reason::BadTimestamp, "timestamp_ns is 0", sequence));
+        }
+        if !(frame.depth_scale.is_finite() && frame.depth_scale > 0.0) {
+            return Err(reject(
+                Reason::BadDepthScale,
+                format!("depth_scale {} is not a positive number of units per metre", frame.depth_scale),
+                sequence,
+            ));
+        }
+        for (present, name) in [
+            (frame.camera.is_some(), "camera"),
+            (frame.colour.is_some(), "colour"),
+            (frame.depth.is_some(), "depth"),
+        ] {
+            if !present {
+                return Err(reject(Reason::MissingField, format!("{name} is missing"), sequence));
+            }
+        }
+        Ok(frame)
+    }
+
+    /// Validates, decodes and detects. `previous` is the last accepted frame of the robot.
+    pub fn process(
+        &mut self,
+        robot_id: &str,
+        bytes: &[u8],
+        previous: Option<&FrameHeader>,
+    ) -> Result<Processed, Rejection> {
+        let started = Instant::now();
+        let frame = self.parse(robot_id, bytes)?;
+        let sequence = Some(frame.sequence);
+        if let Some(previous) = previous {
+            if previous.session_id == frame.session_id && frame.timestamp_ns <= previous.timestamp_ns {
+                return Err(reject(
+                    Reason::TimestampNotIncreasing,
+                    format!(
+                        "timestamp {} ns is not after the previous frame's {} ns",
+                        frame.timestamp_ns, previous.timestamp_ns
+                    ),
+                    sequence,
+                ));
+            }
+        }
+        let wire_camera = frame.camera.as_ref().expect("checked by parse");
+        let camera = PinholeCamera::new(
+            wire_camera.width,
+            wire_camera.height,
+            [wire_camera.fx, wire_camera.fy, wire_camera.cx, wire_camera.cy],
+            wire_camera.distortion.clone(),
+        )
+        .map_err(|e| reject(Reason::BadCamera, e.to_string(), sequence))?;
+        let colour = frame.colour.as_ref().expect("checked by parse");
+        let grey = decode::colour_to_grey(colour, camera.width, camera.height)
+            .map_err(|e| decode_rejection(e, Reason::ColourDecode, sequence))?;
+        let depth_wire = frame.depth.as_ref().expect("checked by parse");
+        let depth = decode::depth(depth_wire.encoding, &depth_wire.data, camera.width, camera.height, frame.depth_scale)
+            .map_err(|e| decode_rejection(e, Reason::DepthDecode, sequence))?;
+
+        let detections = self
+            .detector
+            .detect(&grey)
+            .map_err(|e| reject(Reason::Detection, e.to_string(), sequence))?;
+        if self.estimator.as_ref().is_none_or(|e| e.camera() != &camera) {
+            self.estimator = Some(
+                PoseEstimator::new(camera, self.settings.side_m)
+                    .map_err(|e| reject(Reason::BadCamera, e.to_string(), sequence))?,
+            );
+        }
+        let estimator = self.estimator.as_ref().expect("set above");
+        let depth_check = self.settings.depth_refinement.then_some((&depth, self.settings.depth_agreement));
+        let markers = detections
+            .into_iter()
+            .map(|detection| {
+                // A pose that cannot be computed leaves the detection without one.
+                let pose = estimator.estimate(&detection, depth_check).ok().as_ref().map(api_pose);
+                MarkerDetection { id: detection.id, corners_px: detection.corners, pose }
+            })
+            .collect();
+        Ok(Processed {
+            session_id: frame.session_id,
+            sequence: frame.sequence,
+            timestamp_ns: frame.timestamp_ns,
+            image_width: wire_camera.width,
+            image_height: wire_camera.height,
+            markers,
+            processing: started.elapsed(),
+        })
+    }
+}
+
+fn decode_rejection(error: DecodeError, fallback: Reason, sequence: Option<u64>) -> Rejection {
+    let reason = match error {
+        DecodeError::UnknownColourEncoding(_) | DecodeError::UnknownDepthEncoding(_) | DecodeError::UnknownPixelFormat(_) => {
+            Reason::UnknownEncoding
+        }
+        DecodeError::SizeMismatch { .. } | DecodeError::WrongLength { .. } => Reason::SizeMismatch,
+        DecodeError::Rvl(vsgraphs_proto::rvl::RvlError::SizeMismatch { .. }) => Reason::SizeMismatch,
+        _ => fallback,
+    };
+    reject(reason, error.to_string(), sequence)
+}
+
+/// The dictionary the configuration names: a custom file if given, else a predefined name.
+pub fn load_dictionary(settings: &MarkerConfig) -> Result<MarkerDictionary, DictionaryError> {
+    if settings.dictionary_file.as_os_str().is_empty() {
+        MarkerDictionary::predefined(&settings.dictionary)
+    } else {
+        MarkerDictionary::from_yaml_file(&settings.dictionary_file)
+    }
+}
+
+/// A pose estimate as the API reports it.
+pub fn api_pose(estimate: &MarkerPoseEstimate) -> MarkerPose {
+    let q = estimate.camera_from_marker.rotation.coords;
+    let t = estimate.camera_from_marker.translation.vector;
+    MarkerPose {
+        translation_m: [t.x, t.y, t.z],
+        rotation_xyzw: [q.x, q.y, q.z, q.w],
+        reprojection_error_px: estimate.reprojection_error_px,
+        distance_source: if estimate.used_depth { DistanceSource::Depth } else { DistanceSource::Corners },
+        depth_distance_m: estimate.depth_distance_m,
+        corners_distance_m: estimate.corners_distance_m,
+    }
+}

@@ -1,0 +1,260 @@
+//! Every robot the server has heard of: its presence, frame counters, timing, latest detections.
+//!
+//! Written by the zenoh callbacks (arrivals, presence) and the robot's worker thread (outcomes);
+//! read by the API. Locks are held for a few field updates only, never across I/O or `.await`.
+
+use crate::ingest::queue::FrameQueue;
+use std::collections::{BTreeMap, HashMap, VecDeque};
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::{Arc, Mutex, RwLock};
+use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
+use vsgraphs_proto::api::{self, FrameCounters, FrameDetections, Presence, RobotStatus, Timing};
+
+/// Window over which rate and latency are reported.
+const TIMING_WINDOW: Duration = Duration::from_secs(5);
+
+/// Server time in ns since the Unix epoch.
+pub fn now_ns() -> u64 {
+    SystemTime::now().duration_since(UNIX_EPOCH).map_or(0, |d| d.as_nanos() as u64)
+}
+
+/// One robot.
+pub struct RobotEntry {
+    pub robot_id: String,
+    pub queue: FrameQueue,
+    received: AtomicU64,
+    dropped: AtomicU64,
+    state: Mutex<RobotState>,
+    latest: Mutex<Option<Arc<FrameDetections>>>,
+}
+
+#[derive(Default)]
+struct RobotState {
+    presence: Option<Presence>,
+    last_seen_ns: Option<u64>,
+    session_id: Option<String>,
+    processed: u64,
+    rejected_by_reason: BTreeMap<String, u64>,
+    lost: u64,
+    last_rejection: Option<api::Rejection>,
+    /// (when processed, capture-to-processed latency ms, processing ms) of recent frames.
+    recent: VecDeque<(Instant, f64, f64)>,
+}
+
+impl RobotEntry {
+    fn new(robot_id: String, queue: FrameQueue) -> Self {
+        Self {
+            robot_id,
+            queue,
+            received: AtomicU64::new(0),
+            dropped: AtomicU64::new(0),
+            state: Mutex::new(RobotState::default()),
+            latest: Mutex::new(None),
+        }
+    }
+
+    fn state(&self) -> std::sync::MutexGuard<'_, RobotState> {
+        // A panic elsewhere must not take the robot's counters down with it.
+        self.state.lock().unwrap_or_else(|poisoned| poisoned.into_inner())
+    }
+
+    /// A frame arrived from the network.
+    pub fn record_arrival(&self) {
+        self.received.fetch_add(1, Ordering::Relaxed);
+        self.state().last_seen_ns = Some(now_ns());
+    }
+
+    pub fn record_dropped(&self) {
+        self.dropped.fetch_add(1, Ordering::Relaxed);
+    }
+
+    pub fn record_lost(&self, frames: u64) {
+        self.state().lost += frames;
+    }
+
+    pub fn record_session(&self, session_id: &str) {
+        let mut state = self.state();
+        if state.session_id.as_deref() != Some(session_id) {
+            state.session_id = Some(session_id.to_owned());
+        }
+    }
+
+    pub fn record_rejection(&self, rejection: api::Rejection) {
+        let mut state = self.state();
+        *state.rejected_by_reason.entry(rejection.reason.clone()).or_default() += 1;
+        state.last_rejection = Some(rejection);
+    }
+
+    /// A frame was processed: its detections become the robot's latest.
+    pub fn record_processed(&self, detections: FrameDetections, processing: Duration) {
+        let latency_ms = (now_ns() as f64 - detections.timestamp_ns as f64) / 1e6;
+        {
+            let mut state = self.state();
+            state.processed += 1;
+            let now = Instant::now();
+            state.recent.push_back((now, latency_ms, processing.as_secs_f64() * 1e3));
+            while state.recent.front().is_some_and(|(t, ..)| now.duration_since(*t) > TIMING_WINDOW) {
+                state.recent.pop_front();
+            }
+        }
+        *self.latest.lock().unwrap_or_else(|p| p.into_inner()) = Some(Arc::new(detections));
+    }
+
+    pub fn set_presence(&self, presence: Presence) {
+        let mut state = self.state();
+        state.presence = Some(presence);
+        state.last_seen_ns = Some(now_ns());
+    }
+
+    pub fn latest_detections(&self) -> Option<Arc<FrameDetections>> {
+        self.latest.lock().unwrap_or_else(|p| p.into_inner()).clone()
+    }
+
+    /// A consistent view of the robot for the API.
+    pub fn status(&self) -> RobotStatus {
+        let state = self.state();
+        let rejected = state.rejected_by_reason.values().sum();
+        let now = Instant::now();
+        let recent: Vec<_> = state.recent.iter().filter(|(t, ..)| now.duration_since(*t) <= TIMING_WINDOW).collect();
+        let mean = |f: fn(&(Instant, f64, f64)) -> f64| {
+            (!recent.is_empty()).then(|| recent.iter().map(|r| f(r)).sum::<f64>() / recent.len() as f64)
+        };
+        let rate_hz = match (recent.first(), recent.last()) {
+            (Some(first), Some(last)) if recent.len() > 1 => {
+                (recent.len() - 1) as f64 / last.0.duration_since(first.0).as_secs_f64().max(1e-6)
+            }
+            _ => 0.0,
+        };
+        RobotStatus {
+            robot_id: self.robot_id.clone(),
+            presence: state.presence.unwrap_or(Presence::Unknown),
+            last_seen_ns: state.last_seen_ns,
+            session_id: state.session_id.clone(),
+            frames: FrameCounters {
+                received: self.received.load(Ordering::Relaxed),
+                processed: state.processed,
+                dropped: self.dropped.load(Ordering::Relaxed),
+                rejected,
+                rejected_by_reason: state.rejected_by_reason.clone(),
+                lost: state.lost,
+                queued: self.queue.len() as u64,
+            },
+            timing: Timing {
+                rate_hz,
+                latency_ms_last: recent.last().map(|r| r.1),
+                latency_ms_mean: mean(|r| r.1),
+                latency_ms_max: recent.iter().map(|r| r.1).reduce(f64::max),
+                processing_ms_mean: mean(|r| r.2),
+            },
+            last_rejection: state.last_rejection.clone(),
+        }
+    }
+}
+
+/// All robots, by id. Entries are never removed while the server runs: an offline robot keeps
+/// its counters so that what happened to its frames stays visible.
+pub struct Registry {
+    robots: RwLock<HashMap<String, Arc<RobotEntry>>>,
+    max_robots: usize,
+    queue_capacity: usize,
+    drop_oldest: bool,
+    /// Frames on keys that named no usable robot id, or beyond `max_robots`.
+    pub frames_on_bad_keys: AtomicU64,
+    pub started: Instant,
+}
+
+/// Why a robot could not be registered.
+#[derive(Debug, PartialEq, Eq)]
+pub enum RegisterError {
+    Full,
+}
+
+impl Registry {
+    pub fn new(max_robots: usize, queue_capacity: usize, drop_oldest: bool) -> Self {
+        Self {
+            robots: RwLock::new(HashMap::new()),
+            max_robots,
+            queue_capacity,
+            drop_oldest,
+            frames_on_bad_keys: AtomicU64::new(0),
+            started: Instant::now(),
+        }
+    }
+
+    pub fn get(&self, robot_id: &str) -> Option<Arc<RobotEntry>> {
+        self.robots.read().unwrap_or_else(|p| p.into_inner()).get(robot_id).cloned()
+    }
+
+    /// The robot's entry, created if new; `Ok((entry, true))` when it was just created.
+    pub fn get_or_insert(&self, robot_id: &str) -> Result<(Arc<RobotEntry>, bool), RegisterError> {
+        if let Some(entry) = self.get(robot_id) {
+            return Ok((entry, false));
+        }
+        let mut robots = self.robots.write().unwrap_or_else(|p| p.into_inner());
+        if let Some(entry) = robots.get(robot_id) {
+            return Ok((entry.clone(), false));
+        }
+        if robots.len() >= self.max_robots {
+            return Err(RegisterError::Full);
+        }
+        let entry = Arc::new(RobotEntry::new(
+            robot_id.to_owned(),
+            FrameQueue::new(self.queue_capacity, self.drop_oldest),
+        ));
+        robots.insert(robot_id.to_owned(), entry.clone());
+        Ok((entry, true))
+    }
+
+    /// Every robot, sorted by id.
+    pub fn all(&self) -> Vec<Arc<RobotEntry>> {
+        let mut all: Vec<_> = self.robots.read().unwrap_or_else(|p| p.into_inner()).values().cloned().collect();
+        all.sort_by(|a, b| a.robot_id.cmp(&b.robot_id));
+        all
+    }
+
+    pub fn len(&self) -> usize {
+        self.robots.read().unwrap_or_else(|p| p.into_inner()).len()
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn registry_is_bounded() {
+        let registry = Registry::new(2, 4, true);
+        assert!(registry.get_or_insert("a").unwrap().1);
+        assert!(!registry.get_or_insert("a").unwrap().1);
+        assert!(registry.get_or_insert("b").is_ok());
+        assert_eq!(registry.get_or_insert("c").err(), Some(RegisterError::Full));
+        assert_eq!(registry.all().iter().map(|r| r.robot_id.as_str()).collect::<Vec<_>>(), ["a", "b"]);
+    }
+
+    #[test]
+    fn counters_add_up_in_the_status() {
+        let registry = Registry::new(2, 4, true);
+        let (robot, _) = registry.get_or_insert("a").unwrap();
+        for _ in 0..5 {
+            robot.record_arrival();
+        }
+        robot.record_dropped();
+        robot.record_rejection(api::Rejection { reason: "colour_decode".into(), message: "m".into(), sequence: Some(1), at_ns: 1 });
+        robot.record_rejection(api::Rejection { reason: "colour_decode".into(), message: "m".into(), sequence: Some(2), at_ns: 2 });
+        let detections = FrameDetections { robot_id: "a".into(), session_id: "s".into(), sequence: 3, timestamp_ns: now_ns(), image_width: 4, image_height: 3, markers: vec![] };
+        robot.record_processed(detections.clone(), Duration::from_millis(3));
+        robot.record_processed(FrameDetections { sequence: 4, ..detections }, Duration::from_millis(5));
+        let status = robot.status();
+        assert_eq!(status.frames.received, 5);
+        assert_eq!(status.frames.processed + status.frames.dropped + status.frames.rejected, 5);
+        assert_eq!(status.frames.rejected_by_reason["colour_decode"], 2);
+        assert_eq!(status.last_rejection.unwrap().sequence, Some(2));
+        assert_eq!(status.timing.processing_ms_mean, Some(4.0));
+        assert_eq!(robot.latest_detections().unwrap().sequence, 4);
+        assert_eq!(status.presence, Presence::Unknown);
+    }
+}

@@ -1,0 +1,113 @@
+//! Pinhole camera model with OpenCV's distortion coefficients, checked on construction.
+
+use nalgebra::{Point2, Vector3};
+use thiserror::Error;
+
+/// Largest image side accepted from the network, in pixels.
+pub const MAX_SIDE: u32 = 8192;
+
+#[derive(Debug, Error, PartialEq)]
+pub enum CameraError {
+    #[error("image size {0}x{1} is outside 1..={MAX_SIDE} pixels per side")]
+    BadSize(u32, u32),
+    #[error("focal lengths fx={0}, fy={1} must be finite and positive")]
+    BadFocal(f64, f64),
+    #[error("principal point ({0}, {1}) must be finite and inside the {2}x{3} image")]
+    BadPrincipalPoint(f64, f64, u32, u32),
+    #[error("distortion needs 0, 4, 5, 8, 12 or 14 finite coefficients; got {0:?}")]
+    BadDistortion(Vec<f64>),
+}
+
+/// Intrinsics of a pinhole camera (OpenCV camera frame: x right, y down, z forward).
+#[derive(Debug, Clone, PartialEq)]
+pub struct PinholeCamera {
+    pub width: u32,
+    pub height: u32,
+    pub fx: f64,
+    pub fy: f64,
+    pub cx: f64,
+    pub cy: f64,
+    /// k1 k2 p1 p2 [k3 [k4 k5 k6 [s1 s2 s3 s4 [tx ty]]]], as OpenCV orders them; empty when none.
+    pub distortion: Vec<f64>,
+}
+
+impl PinholeCamera {
+    /// Builds a camera and checks that every parameter is usable.
+    pub fn new(
+        width: u32,
+        height: u32,
+        [fx, fy, cx, cy]: [f64; 4],
+        distortion: Vec<f64>,
+    ) -> Result<Self, CameraError> {
+        if !(1..=MAX_SIDE).contains(&width) || !(1..=MAX_SIDE).contains(&height) {
+            return Err(CameraError::BadSize(width, height));
+        }
+        if !(fx.is_finite() && fy.is_finite() && fx > 0.0 && fy > 0.0) {
+            return Err(CameraError::BadFocal(fx, fy));
+        }
+        let inside = |c: f64, side: u32| c.is_finite() && (0.0..=f64::from(side)).contains(&c);
+        if !(inside(cx, width) && inside(cy, height)) {
+            return Err(CameraError::BadPrincipalPoint(cx, cy, width, height));
+        }
+        if !matches!(distortion.len(), 0 | 4 | 5 | 8 | 12 | 14)
+            || distortion.iter().any(|k| !k.is_finite())
+        {
+            return Err(CameraError::BadDistortion(distortion));
+        }
+        Ok(Self { width, height, fx, fy, cx, cy, distortion })
+    }
+
+    /// True when every distortion coefficient is zero (or none is given).
+    pub fn is_undistorted(&self) -> bool {
+        self.distortion.iter().all(|&k| k == 0.0)
+    }
+
+    /// Projects a point of the camera frame to pixels, ignoring distortion.
+    pub fn project(&self, p_in_camera: &Vector3<f64>) -> Point2<f64> {
+        Point2::new(
+            self.fx * p_in_camera.x / p_in_camera.z + self.cx,
+            self.fy * p_in_camera.y / p_in_camera.z + self.cy,
+        )
+    }
+
+    /// The ray through an undistorted pixel, scaled so that its z is 1.
+    pub fn ray(&self, pixel: Point2<f64>) -> Vector3<f64> {
+        Vector3::new((pixel.x - self.cx) / self.fx, (pixel.y - self.cy) / self.fy, 1.0)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn bad_parameters_are_named() {
+        let ok = [500.0, 500.0, 320.0, 240.0];
+        assert!(PinholeCamera::new(640, 480, ok, vec![]).is_ok());
+        assert_eq!(
+            PinholeCamera::new(640, 480, [0.0, 500.0, 320.0, 240.0], vec![]),
+            Err(CameraError::BadFocal(0.0, 500.0))
+        );
+        assert!(matches!(
+            PinholeCamera::new(640, 480, [500.0, f64::NAN, 320.0, 240.0], vec![]),
+            Err(CameraError::BadFocal(..))
+        ));
+        assert!(matches!(
+            PinholeCamera::new(640, 480, [500.0, 500.0, 700.0, 240.0], vec![]),
+            Err(CameraError::BadPrincipalPoint(..))
+        ));
+        assert_eq!(PinholeCamera::new(0, 480, ok, vec![]), Err(CameraError::BadSize(0, 480)));
+        assert!(matches!(
+            PinholeCamera::new(640, 480, ok, vec![0.1, 0.2, 0.0]),
+            Err(CameraError::BadDistortion(_))
+        ));
+    }
+
+    #[test]
+    fn ray_inverts_projection() {
+        let camera = PinholeCamera::new(640, 480, [585.0, 590.0, 320.0, 240.0], vec![]).unwrap();
+        let p = Vector3::new(0.3, -0.2, 1.7);
+        let ray = camera.ray(camera.project(&p));
+        assert!((ray * p.z - p).norm() < 1e-12);
+    }
+}

@@ -1,0 +1,20 @@
+//! The only vsgraphs crate that touches OpenCV: decoding colour and depth images, ArUco marker
+//! detection with corner refinement, and each marker's 6-DoF pose from its four corners, with
+//! the distance checked (and measured) by the depth image.
+//!
+//! Must not depend on zenoh, tokio or the server; takes wire types from `vsgraphs-proto`.
+
+pub mod aruco;
+pub mod camera;
+pub mod decode;
+pub mod depth;
+pub mod dictionary;
+pub mod pose;
+pub mod synth;
+
+pub use opencv;
+
+/// An OpenCV call failed; carries OpenCV's own message.
+#[derive(Debug, thiserror::Error)]
+#[error("OpenCV: {0}")]
+pub struct CvError(#[from] pub opencv::Error);

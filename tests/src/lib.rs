@@ -1,0 +1,103 @@
+//! Helpers of the end-to-end tests: a real server on loopback zenoh, real SDK robots, rendered
+//! marker frames, and the shared real data.
+
+use std::future::Future;
+use std::net::TcpListener;
+use std::path::PathBuf;
+use std::time::{Duration, Instant};
+use vsgraphs_proto::{CameraModel, ColourImage, DepthEncoding, DepthImage, PixelFormat};
+use vsgraphs_sdk::{encode, Client, Robot, RobotConfig};
+use vsgraphs_server::config::Config;
+use vsgraphs_server::Server;
+use vsgraphs_vision::camera::PinholeCamera;
+use vsgraphs_vision::synth::RenderedFrame;
+
+/// The shared test data (`VSGRAPHS_TEST_DATA`, else `../shared/data` beside the repository),
+/// or None with a message saying the test is skipped.
+pub fn data_dir(test: &str) -> Option<PathBuf> {
+    let dir = std::env::var_os("VSGRAPHS_TEST_DATA")
+        .map(PathBuf::from)
+        .unwrap_or_else(|| PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../shared/data"));
+    if dir.is_dir() {
+        Some(dir)
+    } else {
+        eprintln!("SKIPPED {test}: no test data at {} (set VSGRAPHS_TEST_DATA)", dir.display());
+        None
+    }
+}
+
+/// A TCP port free on loopback right now.
+pub fn free_port() -> u16 {
+    TcpListener::bind("127.0.0.1:0").unwrap().local_addr().unwrap().port()
+}
+
+/// A running server on loopback, isolated from other tests (no scouting, its own ports).
+pub struct TestServer {
+    pub server: Server,
+    pub zenoh_endpoint: String,
+    pub client: Client,
+}
+
+impl TestServer {
+    pub async fn start() -> Self {
+        Self::start_with(|_| {}).await
+    }
+
+    pub async fn start_with(adjust: impl FnOnce(&mut Config)) -> Self {
+        let zenoh_endpoint = format!("tcp/127.0.0.1:{}", free_port());
+        let mut config = Config::default();
+        config.http.listen = "127.0.0.1:0".parse().unwrap();
+        config.zenoh.listen = vec![zenoh_endpoint.clone()];
+        config.zenoh.multicast_scouting = false;
+        adjust(&mut config);
+        let server = Server::start(config).await.expect("the server starts");
+        let client = Client::new(format!("http://{}", server.http_addr()));
+        Self { server, zenoh_endpoint, client }
+    }
+
+    /// A robot connected to this server.
+    pub async fn robot(&self, robot_id: &str) -> Robot {
+        Robot::connect(RobotConfig::connecting_to(robot_id, &self.zenoh_endpoint)).await.expect("the robot connects")
+    }
+}
+
+/// Polls `check` until it returns Some, or panics with `what` after `timeout`.
+pub async fn wait_for<T, F, Fut>(what: &str, timeout: Duration, mut check: F) -> T
+where
+    F: FnMut() -> Fut,
+    Fut: Future<Output = Option<T>>,
+{
+    let start = Instant::now();
+    loop {
+        if let Some(value) = check().await {
+            return value;
+        }
+        assert!(start.elapsed() < timeout, "timed out after {timeout:?} waiting for {what}");
+        tokio::time::sleep(Duration::from_millis(50)).await;
+    }
+}
+
+/// The D435-like camera of the paper's dataset.
+pub fn d435() -> PinholeCamera {
+    PinholeCamera::new(640, 480, [605.86, 606.27, 325.02, 244.76], vec![]).unwrap()
+}
+
+pub fn camera_model(camera: &PinholeCamera) -> CameraModel {
+    CameraModel {
+        width: camera.width,
+        height: camera.height,
+        fx: camera.fx,
+        fy: camera.fy,
+        cx: camera.cx,
+        cy: camera.cy,
+        distortion: camera.distortion.clone(),
+    }
+}
+
+/// A rendered frame encoded as a robot would send it: JPEG colour, RVL depth in millimetres.
+pub fn encode_rendered(camera: &PinholeCamera, frame: &RenderedFrame) -> (ColourImage, DepthImage) {
+    let grey = frame.grey_bytes().unwrap();
+    let colour = encode::colour_jpeg(&grey, camera.width, camera.height, PixelFormat::Mono8, 95).unwrap();
+    let depth = encode::depth(&frame.depth_mm, camera.width, camera.height, DepthEncoding::Rvl).unwrap();
+    (colour, depth)
+}
