@@ -11,12 +11,25 @@ fn depth_frame() -> png16::Depth16 {
     match std::fs::read(&path) {
         Ok(bytes) => png16::decode(&bytes).expect("a 16-bit depth PNG"),
         Err(_) => {
-            eprintln!("{} missing: benchmarking a synthetic slanted wall", path.display());
+            eprintln!(
+                "{} missing: benchmarking a synthetic slanted wall",
+                path.display()
+            );
             let (w, h) = (640u32, 480u32);
             let data = (0..w * h)
-                .map(|i| if i % 97 == 0 { 0 } else { 900 + (i % w) as u16 + (i / w) as u16 / 3 })
+                .map(|i| {
+                    if i % 97 == 0 {
+                        0
+                    } else {
+                        900 + (i % w) as u16 + (i / w) as u16 / 3
+                    }
+                })
                 .collect();
-            png16::Depth16 { width: w, height: h, data }
+            png16::Depth16 {
+                width: w,
+                height: h,
+                data,
+            }
         }
     }
 }
@@ -36,13 +49,19 @@ fn codecs(c: &mut Criterion) {
     );
     let mut group = c.benchmark_group("depth_codec");
     group.throughput(Throughput::Elements(u64::from(w * h)));
-    group.bench_function("rvl_encode", |b| b.iter(|| rvl::encode(&frame.data, w, h).unwrap()));
+    group.bench_function("rvl_encode", |b| {
+        b.iter(|| rvl::encode(&frame.data, w, h).unwrap())
+    });
     let mut out = Vec::new();
     group.bench_function("rvl_decode", |b| {
         b.iter(|| rvl::decode_into(&rvl_bytes, w, h, &mut out).unwrap())
     });
-    group.bench_function("png16_encode", |b| b.iter(|| png16::encode(&frame.data, w, h).unwrap()));
-    group.bench_function("png16_decode", |b| b.iter(|| png16::decode(&png_bytes).unwrap()));
+    group.bench_function("png16_encode", |b| {
+        b.iter(|| png16::encode(&frame.data, w, h).unwrap())
+    });
+    group.bench_function("png16_decode", |b| {
+        b.iter(|| png16::decode(&png_bytes).unwrap())
+    });
     group.finish();
 }
 

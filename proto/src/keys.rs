@@ -76,8 +76,17 @@ mod tests {
     fn robot_ids_are_checked() {
         assert_eq!(validate_robot_id("spot-1"), Ok(()));
         assert_eq!(validate_robot_id(""), Err(RobotIdError::Empty));
-        assert!(matches!(validate_robot_id("a/b"), Err(RobotIdError::BadCharacter(_))));
-        assert!(matches!(validate_robot_id("*"), Err(RobotIdError::BadCharacter(_))));
-        assert_eq!(validate_robot_id(&"x".repeat(65)), Err(RobotIdError::TooLong(65)));
+        assert!(matches!(
+            validate_robot_id("a/b"),
+            Err(RobotIdError::BadCharacter(_))
+        ));
+        assert!(matches!(
+            validate_robot_id("*"),
+            Err(RobotIdError::BadCharacter(_))
+        ));
+        assert_eq!(
+            validate_robot_id(&"x".repeat(65)),
+            Err(RobotIdError::TooLong(65))
+        );
     }
 }

@@ -89,7 +89,11 @@ mod tests {
             let mut encoder = png::Encoder::new(&mut out, 1, 1);
             encoder.set_color(png::ColorType::Rgb);
             encoder.set_depth(png::BitDepth::Eight);
-            encoder.write_header().unwrap().write_image_data(&[1, 2, 3]).unwrap();
+            encoder
+                .write_header()
+                .unwrap()
+                .write_image_data(&[1, 2, 3])
+                .unwrap();
         }
         assert!(matches!(decode(&out), Err(Png16Error::NotDepth(..))));
         assert!(decode(b"not a png").is_err());

@@ -27,7 +27,9 @@ pub enum RvlError {
     MissingHeader,
     #[error("RVL data does not start with the RVL1 magic")]
     BadMagic,
-    #[error("RVL header says {width}x{height}, but {expected_width}x{expected_height} was expected")]
+    #[error(
+        "RVL header says {width}x{height}, but {expected_width}x{expected_height} was expected"
+    )]
     SizeMismatch {
         width: u32,
         height: u32,
@@ -62,7 +64,11 @@ pub fn encode(depth: &[u16], width: u32, height: u32) -> Result<Vec<u8>, RvlErro
     out.extend_from_slice(&MAGIC);
     out.extend_from_slice(&width.to_le_bytes());
     out.extend_from_slice(&height.to_le_bytes());
-    let mut writer = NibbleWriter { out, word: 0, used: 0 };
+    let mut writer = NibbleWriter {
+        out,
+        word: 0,
+        used: 0,
+    };
     let mut previous = 0i32;
     let mut i = 0;
     while i < depth.len() {
@@ -150,7 +156,11 @@ pub fn decode_into(
 }
 
 /// Decodes a whole image; see [`decode_into`].
-pub fn decode(data: &[u8], expected_width: u32, expected_height: u32) -> Result<Vec<u16>, RvlError> {
+pub fn decode(
+    data: &[u8],
+    expected_width: u32,
+    expected_height: u32,
+) -> Result<Vec<u16>, RvlError> {
     let mut out = Vec::new();
     decode_into(data, expected_width, expected_height, &mut out)?;
     Ok(out)
@@ -198,7 +208,11 @@ struct NibbleReader<'a> {
 
 impl<'a> NibbleReader<'a> {
     fn new(data: &'a [u8]) -> Self {
-        Self { data, word: 0, left: 0 }
+        Self {
+            data,
+            word: 0,
+            left: 0,
+        }
     }
 
     #[inline]
@@ -301,9 +315,18 @@ mod tests {
         let encoded = encode(&[5, 6, 0, 7], 2, 2).unwrap();
         assert_eq!(decode(&encoded[..5], 2, 2), Err(RvlError::MissingHeader));
         assert_eq!(decode(b"PNG\x01aaaaaaaaaa", 2, 2), Err(RvlError::BadMagic));
-        assert!(matches!(decode(&encoded, 4, 1), Err(RvlError::SizeMismatch { .. })));
-        assert_eq!(decode(&encoded[..HEADER_LEN], 2, 2), Err(RvlError::Truncated));
-        assert!(matches!(encode(&[1, 2, 3], 2, 2), Err(RvlError::WrongLength { .. })));
+        assert!(matches!(
+            decode(&encoded, 4, 1),
+            Err(RvlError::SizeMismatch { .. })
+        ));
+        assert_eq!(
+            decode(&encoded[..HEADER_LEN], 2, 2),
+            Err(RvlError::Truncated)
+        );
+        assert!(matches!(
+            encode(&[1, 2, 3], 2, 2),
+            Err(RvlError::WrongLength { .. })
+        ));
     }
 
     #[test]
@@ -323,6 +346,10 @@ mod tests {
         let depth: Vec<u16> = (0..w * h).map(|i| 1000 + ((i % w) / 8) as u16).collect();
         let encoded = encode(&depth, w, h).unwrap();
         // Deltas of 0 or 1 take one nibble a pixel: a quarter of the raw 16 bits.
-        assert!(encoded.len() < depth.len() * 2 / 3, "{} bytes", encoded.len());
+        assert!(
+            encoded.len() < depth.len() * 2 / 3,
+            "{} bytes",
+            encoded.len()
+        );
     }
 }

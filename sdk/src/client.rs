@@ -9,9 +9,17 @@ pub enum ClientError {
     #[error("HTTP request to {url} failed: {source}")]
     Http { url: String, source: reqwest::Error },
     #[error("{url} answered {status}: {} ({})", .body.message, .body.error)]
-    Api { url: String, status: u16, body: ApiError },
+    Api {
+        url: String,
+        status: u16,
+        body: ApiError,
+    },
     #[error("{url} answered {status} with an unreadable body: {text}")]
-    Unexpected { url: String, status: u16, text: String },
+    Unexpected {
+        url: String,
+        status: u16,
+        text: String,
+    },
 }
 
 /// Client of one server's `/api/v1`.
@@ -44,12 +52,16 @@ impl Client {
 
     /// The markers of the robot's latest processed frame.
     pub async fn detections(&self, robot_id: &str) -> Result<FrameDetections, ClientError> {
-        self.get(&format!("/api/v1/robots/{robot_id}/detections")).await
+        self.get(&format!("/api/v1/robots/{robot_id}/detections"))
+            .await
     }
 
     async fn get<T: DeserializeOwned>(&self, path: &str) -> Result<T, ClientError> {
         let url = format!("{}{path}", self.base);
-        let http = |source| ClientError::Http { url: url.clone(), source };
+        let http = |source| ClientError::Http {
+            url: url.clone(),
+            source,
+        };
         let response = self.http.get(&url).send().await.map_err(http)?;
         let status = response.status();
         let text = response.text().await.map_err(http)?;
@@ -58,8 +70,16 @@ impl Client {
                 return Ok(value);
             }
         } else if let Ok(body) = serde_json::from_str::<ApiError>(&text) {
-            return Err(ClientError::Api { url, status: status.as_u16(), body });
+            return Err(ClientError::Api {
+                url,
+                status: status.as_u16(),
+                body,
+            });
         }
-        Err(ClientError::Unexpected { url, status: status.as_u16(), text })
+        Err(ClientError::Unexpected {
+            url,
+            status: status.as_u16(),
+            text,
+        })
     }
 }

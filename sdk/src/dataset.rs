@@ -27,9 +27,16 @@ pub enum DatasetError {
     #[error("{0} is neither a TUM RGB-D sequence (rgb.txt, depth.txt) nor a 7-Scenes sequence (frame-000000.color.jpg)")]
     UnknownLayout(PathBuf),
     #[error("cannot read {path}: {source}")]
-    Io { path: PathBuf, source: std::io::Error },
+    Io {
+        path: PathBuf,
+        source: std::io::Error,
+    },
     #[error("{path}:{line}: {message}")]
-    Parse { path: PathBuf, line: usize, message: String },
+    Parse {
+        path: PathBuf,
+        line: usize,
+        message: String,
+    },
     #[error("{0} holds no frame with both colour and depth")]
     Empty(PathBuf),
     #[error("cannot read the image size from {path}: {message}")]
@@ -76,7 +83,10 @@ pub fn open(root: &Path) -> Result<Dataset, DatasetError> {
 }
 
 fn read(path: &Path) -> Result<String, DatasetError> {
-    fs::read_to_string(path).map_err(|source| DatasetError::Io { path: path.to_owned(), source })
+    fs::read_to_string(path).map_err(|source| DatasetError::Io {
+        path: path.to_owned(),
+        source,
+    })
 }
 
 /// Parses a TUM list file: `timestamp path` per line, seconds as a decimal number.
@@ -87,10 +97,16 @@ fn read_tum_list(path: &Path) -> Result<Vec<(u64, String)>, DatasetError> {
         if line.is_empty() || line.starts_with('#') {
             continue;
         }
-        let parse_error = |message: String| DatasetError::Parse { path: path.to_owned(), line: index + 1, message };
+        let parse_error = |message: String| DatasetError::Parse {
+            path: path.to_owned(),
+            line: index + 1,
+            message,
+        };
         let mut fields = line.split_whitespace();
         let (Some(stamp), Some(file)) = (fields.next(), fields.next()) else {
-            return Err(parse_error(format!("expected `timestamp path`, found {line:?}")));
+            return Err(parse_error(format!(
+                "expected `timestamp path`, found {line:?}"
+            )));
         };
         let stamp_ns = seconds_to_ns(stamp)
             .ok_or_else(|| parse_error(format!("{stamp:?} is not a timestamp in seconds")))?;
@@ -112,7 +128,11 @@ pub fn seconds_to_ns(text: &str) -> Option<u64> {
     while nanos.len() < 9 {
         nanos.push('0');
     }
-    whole.parse::<u64>().ok()?.checked_mul(1_000_000_000)?.checked_add(nanos.parse().ok()?)
+    whole
+        .parse::<u64>()
+        .ok()?
+        .checked_mul(1_000_000_000)?
+        .checked_add(nanos.parse().ok()?)
 }
 
 /// Pairs each colour stamp with the nearest unused depth stamp within `max_difference`,
@@ -157,14 +177,22 @@ fn open_tum(root: &Path) -> Result<Dataset, DatasetError> {
             depth: root.join(&depth[j].1),
         })
         .collect();
-    let first = frames.first().ok_or_else(|| DatasetError::Empty(root.to_owned()))?;
+    let first = frames
+        .first()
+        .ok_or_else(|| DatasetError::Empty(root.to_owned()))?;
     let (width, height) = png_size(&first.depth)?;
     let mut warnings = Vec::new();
     let name = root.to_string_lossy().to_lowercase();
     let (intrinsics, distortion) = if name.contains("freiburg1") {
-        ([517.3, 516.5, 318.6, 255.3], vec![0.2624, -0.9531, -0.0054, 0.0026, 1.1633])
+        (
+            [517.3, 516.5, 318.6, 255.3],
+            vec![0.2624, -0.9531, -0.0054, 0.0026, 1.1633],
+        )
     } else if name.contains("freiburg2") {
-        ([520.9, 521.0, 325.1, 249.7], vec![0.2312, -0.7849, -0.0033, -0.0001, 0.9172])
+        (
+            [520.9, 521.0, 325.1, 249.7],
+            vec![0.2312, -0.7849, -0.0033, -0.0001, 0.9172],
+        )
     } else if name.contains("freiburg3") {
         ([535.4, 539.2, 320.1, 247.6], vec![])
     } else {
@@ -196,9 +224,15 @@ fn open_seven_scenes(root: &Path) -> Result<Dataset, DatasetError> {
         if !(colour.is_file() && depth.is_file()) {
             break;
         }
-        frames.push(FrameFiles { timestamp_ns: index * SEVEN_SCENES_PERIOD_NS, colour, depth });
+        frames.push(FrameFiles {
+            timestamp_ns: index * SEVEN_SCENES_PERIOD_NS,
+            colour,
+            depth,
+        });
     }
-    let first = frames.first().ok_or_else(|| DatasetError::Empty(root.to_owned()))?;
+    let first = frames
+        .first()
+        .ok_or_else(|| DatasetError::Empty(root.to_owned()))?;
     let (width, height) = png_size(&first.depth)?;
     let intrinsics_path = root.join("camera-intrinsics.txt");
     let mut warnings = Vec::new();
@@ -220,8 +254,21 @@ fn open_seven_scenes(root: &Path) -> Result<Dataset, DatasetError> {
     Ok(dataset)
 }
 
-fn camera_model(width: u32, height: u32, [fx, fy, cx, cy]: [f64; 4], distortion: Vec<f64>) -> CameraModel {
-    CameraModel { width, height, fx, fy, cx, cy, distortion }
+fn camera_model(
+    width: u32,
+    height: u32,
+    [fx, fy, cx, cy]: [f64; 4],
+    distortion: Vec<f64>,
+) -> CameraModel {
+    CameraModel {
+        width,
+        height,
+        fx,
+        fy,
+        cx,
+        cy,
+        distortion,
+    }
 }
 
 /// Reads fx, fy, cx, cy from a whitespace-separated 3×3 camera matrix.
@@ -255,11 +302,12 @@ fn apply_camera_json(dataset: &mut Dataset) -> Result<(), DatasetError> {
     if !path.is_file() {
         return Ok(());
     }
-    let camera: CameraJson = serde_json::from_str(&read(&path)?).map_err(|e| DatasetError::Parse {
-        path: path.clone(),
-        line: e.line(),
-        message: e.to_string(),
-    })?;
+    let camera: CameraJson =
+        serde_json::from_str(&read(&path)?).map_err(|e| DatasetError::Parse {
+            path: path.clone(),
+            line: e.line(),
+            message: e.to_string(),
+        })?;
     dataset.camera = camera_model(
         dataset.camera.width,
         dataset.camera.height,
@@ -273,10 +321,16 @@ fn apply_camera_json(dataset: &mut Dataset) -> Result<(), DatasetError> {
 }
 
 fn png_size(path: &Path) -> Result<(u32, u32), DatasetError> {
-    let file = fs::File::open(path).map_err(|source| DatasetError::Io { path: path.to_owned(), source })?;
+    let file = fs::File::open(path).map_err(|source| DatasetError::Io {
+        path: path.to_owned(),
+        source,
+    })?;
     let reader = png::Decoder::new(std::io::BufReader::new(file))
         .read_info()
-        .map_err(|e| DatasetError::ImageHeader { path: path.to_owned(), message: e.to_string() })?;
+        .map_err(|e| DatasetError::ImageHeader {
+            path: path.to_owned(),
+            message: e.to_string(),
+        })?;
     Ok((reader.info().width, reader.info().height))
 }
 
@@ -290,28 +344,44 @@ mod tests {
         let colour = [0, 33 * ms, 66 * ms, 200 * ms];
         let depth = [5 * ms, 30 * ms, 40 * ms, 70 * ms];
         // 33↔30 (3 ms) beats 33↔40; 0↔5; 66↔70; 200 has no partner within 20 ms.
-        assert_eq!(associate(&colour, &depth, 20 * ms), vec![(0, 0), (1, 1), (2, 3)]);
+        assert_eq!(
+            associate(&colour, &depth, 20 * ms),
+            vec![(0, 0), (1, 1), (2, 3)]
+        );
     }
 
     #[test]
     fn tum_lists_are_parsed_and_checked() {
         let dir = tempfile::tempdir().unwrap();
         let path = dir.path().join("rgb.txt");
-        fs::write(&path, "# colour images\n# file\n1305031102.175304 rgb/1305031102.175304.png\n").unwrap();
+        fs::write(
+            &path,
+            "# colour images\n# file\n1305031102.175304 rgb/1305031102.175304.png\n",
+        )
+        .unwrap();
         assert_eq!(
             read_tum_list(&path).unwrap(),
-            vec![(1_305_031_102_175_304_000, "rgb/1305031102.175304.png".to_owned())]
+            vec![(
+                1_305_031_102_175_304_000,
+                "rgb/1305031102.175304.png".to_owned()
+            )]
         );
         fs::write(&path, "12.5\n").unwrap();
         let error = read_tum_list(&path).unwrap_err().to_string();
         assert!(error.contains(":1:"), "{error}");
         fs::write(&path, "abc rgb/x.png\n").unwrap();
-        assert!(read_tum_list(&path).unwrap_err().to_string().contains("not a timestamp"));
+        assert!(read_tum_list(&path)
+            .unwrap_err()
+            .to_string()
+            .contains("not a timestamp"));
     }
 
     #[test]
     fn seconds_parse_exactly() {
-        assert_eq!(seconds_to_ns("1305031102.175304"), Some(1_305_031_102_175_304_000));
+        assert_eq!(
+            seconds_to_ns("1305031102.175304"),
+            Some(1_305_031_102_175_304_000)
+        );
         assert_eq!(seconds_to_ns("12"), Some(12_000_000_000));
         assert_eq!(seconds_to_ns("0.0000000019"), Some(1));
         for bad in ["", ".5", "-1.0", "1e9", "1.2.3"] {
@@ -322,7 +392,10 @@ mod tests {
     #[test]
     fn unknown_layouts_are_named() {
         let dir = tempfile::tempdir().unwrap();
-        assert!(matches!(open(dir.path()), Err(DatasetError::UnknownLayout(_))));
+        assert!(matches!(
+            open(dir.path()),
+            Err(DatasetError::UnknownLayout(_))
+        ));
     }
 
     #[test]
@@ -332,11 +405,26 @@ mod tests {
         let depth = vsgraphs_proto::png16::encode(&[1000; 12], 4, 3).unwrap();
         fs::write(dir.path().join("depth/1.000000.png"), depth).unwrap();
         fs::write(dir.path().join("rgb.txt"), "1.005 rgb/1.005.png\n").unwrap();
-        fs::write(dir.path().join("depth.txt"), "1.000000 depth/1.000000.png\n").unwrap();
-        fs::write(dir.path().join("camera.json"), r#"{"fx":2,"fy":2,"cx":2,"cy":1.5}"#).unwrap();
+        fs::write(
+            dir.path().join("depth.txt"),
+            "1.000000 depth/1.000000.png\n",
+        )
+        .unwrap();
+        fs::write(
+            dir.path().join("camera.json"),
+            r#"{"fx":2,"fy":2,"cx":2,"cy":1.5}"#,
+        )
+        .unwrap();
         let dataset = open(dir.path()).unwrap();
         assert_eq!(dataset.layout, Layout::Tum);
-        assert_eq!((dataset.camera.width, dataset.camera.height, dataset.camera.fx), (4, 3, 2.0));
+        assert_eq!(
+            (
+                dataset.camera.width,
+                dataset.camera.height,
+                dataset.camera.fx
+            ),
+            (4, 3, 2.0)
+        );
         assert_eq!(dataset.depth_scale, 5000.0);
         assert_eq!(dataset.frames.len(), 1);
         assert_eq!(dataset.frames[0].timestamp_ns, 1_005_000_000);

@@ -1,7 +1,9 @@
 //! Raw buffers to wire encodings, for robots that hold images in memory.
 
 use thiserror::Error;
-use vsgraphs_proto::{png16, rvl, ColourEncoding, ColourImage, DepthEncoding, DepthImage, PixelFormat};
+use vsgraphs_proto::{
+    png16, rvl, ColourEncoding, ColourImage, DepthEncoding, DepthImage, PixelFormat,
+};
 
 #[derive(Debug, Error)]
 pub enum EncodeError {
@@ -33,10 +35,21 @@ fn channels(format: PixelFormat) -> Result<usize, EncodeError> {
     }
 }
 
-fn check_length(pixels: &[u8], width: u32, height: u32, format: PixelFormat) -> Result<(), EncodeError> {
+fn check_length(
+    pixels: &[u8],
+    width: u32,
+    height: u32,
+    format: PixelFormat,
+) -> Result<(), EncodeError> {
     let expected = width as usize * height as usize * channels(format)?;
     if pixels.len() != expected {
-        return Err(EncodeError::WrongLength { got: pixels.len(), expected, width, height, format });
+        return Err(EncodeError::WrongLength {
+            got: pixels.len(),
+            expected,
+            width,
+            height,
+            format,
+        });
     }
     Ok(())
 }
@@ -61,30 +74,65 @@ pub fn colour_jpeg(
         PixelFormat::Unspecified => return Err(EncodeError::UnsupportedFormat(format)),
     };
     let mut data = Vec::with_capacity(pixels.len() / 8);
-    jpeg_encoder::Encoder::new(&mut data, quality.clamp(1, 100)).encode(pixels, w, h, colour_type)?;
-    Ok(ColourImage { encoding: ColourEncoding::Jpeg as i32, pixel_format: format as i32, data })
+    jpeg_encoder::Encoder::new(&mut data, quality.clamp(1, 100)).encode(
+        pixels,
+        w,
+        h,
+        colour_type,
+    )?;
+    Ok(ColourImage {
+        encoding: ColourEncoding::Jpeg as i32,
+        pixel_format: format as i32,
+        data,
+    })
 }
 
 /// Sends a colour image uncompressed.
-pub fn colour_raw(pixels: &[u8], width: u32, height: u32, format: PixelFormat) -> Result<ColourImage, EncodeError> {
+pub fn colour_raw(
+    pixels: &[u8],
+    width: u32,
+    height: u32,
+    format: PixelFormat,
+) -> Result<ColourImage, EncodeError> {
     check_length(pixels, width, height, format)?;
-    Ok(ColourImage { encoding: ColourEncoding::Raw as i32, pixel_format: format as i32, data: pixels.to_vec() })
+    Ok(ColourImage {
+        encoding: ColourEncoding::Raw as i32,
+        pixel_format: format as i32,
+        data: pixels.to_vec(),
+    })
 }
 
 /// Encodes a depth image (row-major, sensor units) with the chosen codec.
-pub fn depth(values: &[u16], width: u32, height: u32, encoding: DepthEncoding) -> Result<DepthImage, EncodeError> {
+pub fn depth(
+    values: &[u16],
+    width: u32,
+    height: u32,
+    encoding: DepthEncoding,
+) -> Result<DepthImage, EncodeError> {
     let data = match encoding {
         DepthEncoding::Rvl => rvl::encode(values, width, height)?,
         DepthEncoding::Png16 => png16::encode(values, width, height)?,
         DepthEncoding::Raw16 | DepthEncoding::Unspecified => {
             if values.len() != width as usize * height as usize {
-                return Err(rvl::RvlError::WrongLength { got: values.len(), width, height }.into());
+                return Err(rvl::RvlError::WrongLength {
+                    got: values.len(),
+                    width,
+                    height,
+                }
+                .into());
             }
             values.iter().flat_map(|v| v.to_le_bytes()).collect()
         }
     };
-    let encoding = if encoding == DepthEncoding::Unspecified { DepthEncoding::Raw16 } else { encoding };
-    Ok(DepthImage { encoding: encoding as i32, data })
+    let encoding = if encoding == DepthEncoding::Unspecified {
+        DepthEncoding::Raw16
+    } else {
+        encoding
+    };
+    Ok(DepthImage {
+        encoding: encoding as i32,
+        data,
+    })
 }
 
 #[cfg(test)]

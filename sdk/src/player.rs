@@ -32,7 +32,9 @@ impl std::str::FromStr for Rate {
             "max" => Ok(Rate::Max),
             _ => match s.parse::<f64>() {
                 Ok(hz) if hz.is_finite() && hz > 0.0 => Ok(Rate::Hz(hz)),
-                _ => Err(format!("{s:?}: expected realtime, max or a positive frame rate in Hz")),
+                _ => Err(format!(
+                    "{s:?}: expected realtime, max or a positive frame rate in Hz"
+                )),
             },
         }
     }
@@ -53,7 +55,13 @@ pub struct PlayOptions {
 
 impl Default for PlayOptions {
     fn default() -> Self {
-        Self { rate: Rate::RealTime, depth_codec: DepthEncoding::Rvl, loops: 1, limit: None, original_timestamps: false }
+        Self {
+            rate: Rate::RealTime,
+            depth_codec: DepthEncoding::Rvl,
+            loops: 1,
+            limit: None,
+            original_timestamps: false,
+        }
     }
 }
 
@@ -89,20 +97,44 @@ struct Loaded {
 }
 
 /// Reads and encodes one frame's files.
-fn load(files: &FrameFiles, codec: DepthEncoding) -> Result<(ColourImage, DepthImage, u64), String> {
-    let colour_bytes = std::fs::read(&files.colour).map_err(|e| format!("{}: {e}", files.colour.display()))?;
+fn load(
+    files: &FrameFiles,
+    codec: DepthEncoding,
+) -> Result<(ColourImage, DepthImage, u64), String> {
+    let colour_bytes =
+        std::fs::read(&files.colour).map_err(|e| format!("{}: {e}", files.colour.display()))?;
     let encoding = match files.colour.extension().and_then(|e| e.to_str()) {
         Some("jpg" | "jpeg") => ColourEncoding::Jpeg,
         Some("png") => ColourEncoding::Png,
-        other => return Err(format!("{}: unknown colour file type {other:?}", files.colour.display())),
+        other => {
+            return Err(format!(
+                "{}: unknown colour file type {other:?}",
+                files.colour.display()
+            ))
+        }
     };
-    let colour = ColourImage { encoding: encoding as i32, pixel_format: PixelFormat::Rgb8 as i32, data: colour_bytes };
-    let depth_bytes = std::fs::read(&files.depth).map_err(|e| format!("{}: {e}", files.depth.display()))?;
+    let colour = ColourImage {
+        encoding: encoding as i32,
+        pixel_format: PixelFormat::Rgb8 as i32,
+        data: colour_bytes,
+    };
+    let depth_bytes =
+        std::fs::read(&files.depth).map_err(|e| format!("{}: {e}", files.depth.display()))?;
     if codec == DepthEncoding::Png16 {
-        let raw = png16::decode(&depth_bytes).map(|d| d.data.len() as u64 * 2).unwrap_or(0);
-        return Ok((colour, DepthImage { encoding: DepthEncoding::Png16 as i32, data: depth_bytes }, raw));
+        let raw = png16::decode(&depth_bytes)
+            .map(|d| d.data.len() as u64 * 2)
+            .unwrap_or(0);
+        return Ok((
+            colour,
+            DepthImage {
+                encoding: DepthEncoding::Png16 as i32,
+                data: depth_bytes,
+            },
+            raw,
+        ));
     }
-    let decoded = png16::decode(&depth_bytes).map_err(|e| format!("{}: {e}", files.depth.display()))?;
+    let decoded =
+        png16::decode(&depth_bytes).map_err(|e| format!("{}: {e}", files.depth.display()))?;
     let depth = encode::depth(&decoded.data, decoded.width, decoded.height, codec)
         .map_err(|e| format!("{}: {e}", files.depth.display()))?;
     Ok((colour, depth, decoded.data.len() as u64 * 2))
@@ -127,7 +159,12 @@ pub async fn play(
     let codec = options.depth_codec;
     let loops = options.loops;
     let limit = total;
-    let period_ns = frames.windows(2).map(|w| w[1].timestamp_ns.saturating_sub(w[0].timestamp_ns)).min().unwrap_or(33_333_333).max(1);
+    let period_ns = frames
+        .windows(2)
+        .map(|w| w[1].timestamp_ns.saturating_sub(w[0].timestamp_ns))
+        .min()
+        .unwrap_or(33_333_333)
+        .max(1);
     let loader = std::thread::Builder::new()
         .name("dataset-loader".into())
         .spawn(move || {
@@ -143,20 +180,30 @@ pub async fn play(
                     }
                     let result = load(files, codec);
                     let timestamp_ns = loop_offset + files.timestamp_ns - frames[0].timestamp_ns;
-                    let loaded = Loaded { timestamp_ns, result, files: files.clone() };
+                    let loaded = Loaded {
+                        timestamp_ns,
+                        result,
+                        files: files.clone(),
+                    };
                     if sender.blocking_send(loaded).is_err() {
                         return;
                     }
                     sent += 1;
                 }
-                let span = frames.last().map_or(0, |f| f.timestamp_ns - frames[0].timestamp_ns);
+                let span = frames
+                    .last()
+                    .map_or(0, |f| f.timestamp_ns - frames[0].timestamp_ns);
                 loop_offset += span + period_ns;
             }
         })
         .expect("a thread can be spawned");
 
     let start = Instant::now();
-    let stamp_base = if options.original_timestamps { dataset.frames[0].timestamp_ns } else { now_ns() };
+    let stamp_base = if options.original_timestamps {
+        dataset.frames[0].timestamp_ns
+    } else {
+        now_ns()
+    };
     let mut summary = PlaySummary::default();
     let mut attempted = 0u64;
     while let Some(loaded) = receiver.recv().await {
@@ -174,7 +221,13 @@ pub async fn play(
                 summary.depth_bytes += depth.data.len() as u64;
                 summary.depth_raw_bytes += raw_depth;
                 let (_, size) = robot
-                    .publish(stamp_base + loaded.timestamp_ns, dataset.camera.clone(), dataset.depth_scale, colour, depth)
+                    .publish(
+                        stamp_base + loaded.timestamp_ns,
+                        dataset.camera.clone(),
+                        dataset.depth_scale,
+                        colour,
+                        depth,
+                    )
                     .await?;
                 summary.frames_sent += 1;
                 summary.bytes_sent += size as u64;

@@ -87,9 +87,14 @@ impl Robot {
             .congestion_control(congestion)
             .priority(Priority::DataHigh)
             .await?;
-        let token = session.liveliness().declare_token(keys::alive(&config.robot_id)).await?;
+        let token = session
+            .liveliness()
+            .declare_token(keys::alive(&config.robot_id))
+            .await?;
         let session_id = config.session_id.unwrap_or_else(|| {
-            let nanos = SystemTime::now().duration_since(UNIX_EPOCH).map_or(0, |d| d.as_nanos());
+            let nanos = SystemTime::now()
+                .duration_since(UNIX_EPOCH)
+                .map_or(0, |d| d.as_nanos());
             format!("{}-{nanos:x}", std::process::id())
         });
         Ok(Self {
@@ -153,7 +158,12 @@ impl Robot {
 
     /// Withdraws the liveliness token and closes the session.
     pub async fn close(self) -> Result<(), RobotError> {
-        let Robot { publisher, _token, session, .. } = self;
+        let Robot {
+            publisher,
+            _token,
+            session,
+            ..
+        } = self;
         _token.undeclare().await?;
         publisher.undeclare().await?;
         session.close().await?;
@@ -163,5 +173,7 @@ impl Robot {
 
 /// Current time in ns since the Unix epoch: the stamp for frames captured now.
 pub fn now_ns() -> u64 {
-    SystemTime::now().duration_since(UNIX_EPOCH).map_or(0, |d| d.as_nanos() as u64)
+    SystemTime::now()
+        .duration_since(UNIX_EPOCH)
+        .map_or(0, |d| d.as_nanos() as u64)
 }

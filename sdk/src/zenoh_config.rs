@@ -42,7 +42,10 @@ impl ZenohSettings {
         let set = |config: &mut Config, key: &'static str, value: String| {
             config
                 .insert_json5(key, &value)
-                .map_err(|e| ZenohConfigError { key, message: e.to_string() })
+                .map_err(|e| ZenohConfigError {
+                    key,
+                    message: e.to_string(),
+                })
         };
         if !matches!(self.mode.as_str(), "peer" | "client") {
             return Err(ZenohConfigError {
@@ -52,7 +55,14 @@ impl ZenohSettings {
         }
         set(&mut config, "mode", json_string(&self.mode))?;
         let list = |items: &[String]| {
-            format!("[{}]", items.iter().map(|s| json_string(s)).collect::<Vec<_>>().join(","))
+            format!(
+                "[{}]",
+                items
+                    .iter()
+                    .map(|s| json_string(s))
+                    .collect::<Vec<_>>()
+                    .join(",")
+            )
         };
         set(&mut config, "listen/endpoints", list(&self.listen))?;
         set(&mut config, "connect/endpoints", list(&self.connect))?;
@@ -86,10 +96,18 @@ mod tests {
 
     #[test]
     fn bad_settings_are_named() {
-        let bad_mode = ZenohSettings { mode: "router-ish".into(), ..Default::default() };
+        let bad_mode = ZenohSettings {
+            mode: "router-ish".into(),
+            ..Default::default()
+        };
         assert_eq!(bad_mode.to_config().unwrap_err().key, "mode");
-        let bad_endpoint =
-            ZenohSettings { connect: vec!["not an endpoint".into()], ..Default::default() };
-        assert_eq!(bad_endpoint.to_config().unwrap_err().key, "connect/endpoints");
+        let bad_endpoint = ZenohSettings {
+            connect: vec!["not an endpoint".into()],
+            ..Default::default()
+        };
+        assert_eq!(
+            bad_endpoint.to_config().unwrap_err().key,
+            "connect/endpoints"
+        );
     }
 }

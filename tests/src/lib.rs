@@ -21,14 +21,21 @@ pub fn data_dir(test: &str) -> Option<PathBuf> {
     if dir.is_dir() {
         Some(dir)
     } else {
-        eprintln!("SKIPPED {test}: no test data at {} (set VSGRAPHS_TEST_DATA)", dir.display());
+        eprintln!(
+            "SKIPPED {test}: no test data at {} (set VSGRAPHS_TEST_DATA)",
+            dir.display()
+        );
         None
     }
 }
 
 /// A TCP port free on loopback right now.
 pub fn free_port() -> u16 {
-    TcpListener::bind("127.0.0.1:0").unwrap().local_addr().unwrap().port()
+    TcpListener::bind("127.0.0.1:0")
+        .unwrap()
+        .local_addr()
+        .unwrap()
+        .port()
 }
 
 /// A running server on loopback, isolated from other tests (no scouting, its own ports).
@@ -52,12 +59,18 @@ impl TestServer {
         adjust(&mut config);
         let server = Server::start(config).await.expect("the server starts");
         let client = Client::new(format!("http://{}", server.http_addr()));
-        Self { server, zenoh_endpoint, client }
+        Self {
+            server,
+            zenoh_endpoint,
+            client,
+        }
     }
 
     /// A robot connected to this server.
     pub async fn robot(&self, robot_id: &str) -> Robot {
-        Robot::connect(RobotConfig::connecting_to(robot_id, &self.zenoh_endpoint)).await.expect("the robot connects")
+        Robot::connect(RobotConfig::connecting_to(robot_id, &self.zenoh_endpoint))
+            .await
+            .expect("the robot connects")
     }
 }
 
@@ -72,7 +85,10 @@ where
         if let Some(value) = check().await {
             return value;
         }
-        assert!(start.elapsed() < timeout, "timed out after {timeout:?} waiting for {what}");
+        assert!(
+            start.elapsed() < timeout,
+            "timed out after {timeout:?} waiting for {what}"
+        );
         tokio::time::sleep(Duration::from_millis(50)).await;
     }
 }
@@ -97,7 +113,14 @@ pub fn camera_model(camera: &PinholeCamera) -> CameraModel {
 /// A rendered frame encoded as a robot would send it: JPEG colour, RVL depth in millimetres.
 pub fn encode_rendered(camera: &PinholeCamera, frame: &RenderedFrame) -> (ColourImage, DepthImage) {
     let grey = frame.grey_bytes().unwrap();
-    let colour = encode::colour_jpeg(&grey, camera.width, camera.height, PixelFormat::Mono8, 95).unwrap();
-    let depth = encode::depth(&frame.depth_mm, camera.width, camera.height, DepthEncoding::Rvl).unwrap();
+    let colour =
+        encode::colour_jpeg(&grey, camera.width, camera.height, PixelFormat::Mono8, 95).unwrap();
+    let depth = encode::depth(
+        &frame.depth_mm,
+        camera.width,
+        camera.height,
+        DepthEncoding::Rvl,
+    )
+    .unwrap();
     (colour, depth)
 }

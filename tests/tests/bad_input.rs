@@ -29,14 +29,31 @@ async fn bad_frames_are_rejected_with_reasons_and_the_stream_goes_on() {
 
     // Sends one good frame and waits until the server has processed it.
     let good = |label: &'static str| {
-        let (robot, colour, depth, model, client) = (&robot, colour.clone(), depth.clone(), model.clone(), test.client.clone());
+        let (robot, colour, depth, model, client) = (
+            &robot,
+            colour.clone(),
+            depth.clone(),
+            model.clone(),
+            test.client.clone(),
+        );
         async move {
-            let (sequence, _) = robot.publish(now_ns(), model, 1000.0, colour, depth).await.unwrap();
+            let (sequence, _) = robot
+                .publish(now_ns(), model, 1000.0, colour, depth)
+                .await
+                .unwrap();
             let detections = wait_for(label, Duration::from_secs(20), || async {
-                client.detections("clumsy").await.ok().filter(|d| d.sequence == sequence)
+                client
+                    .detections("clumsy")
+                    .await
+                    .ok()
+                    .filter(|d| d.sequence == sequence)
             })
             .await;
-            assert_eq!(detections.markers.iter().map(|m| m.id).collect::<Vec<_>>(), [5], "{label}");
+            assert_eq!(
+                detections.markers.iter().map(|m| m.id).collect::<Vec<_>>(),
+                [5],
+                "{label}"
+            );
         }
     };
     // Waits until `reason` has been counted `count` times, and checks it is the latest rejection.
@@ -45,7 +62,11 @@ async fn bad_frames_are_rejected_with_reasons_and_the_stream_goes_on() {
         async move {
             let status = wait_for(reason, Duration::from_secs(20), || async {
                 let status = client.robot("clumsy").await.ok()?;
-                status.frames.rejected_by_reason.contains_key(reason).then_some(status)
+                status
+                    .frames
+                    .rejected_by_reason
+                    .contains_key(reason)
+                    .then_some(status)
             })
             .await;
             let last = status.last_rejection.expect("a rejection is reported");
@@ -59,30 +80,53 @@ async fn bad_frames_are_rejected_with_reasons_and_the_stream_goes_on() {
 
     let mut truncated = colour.clone();
     truncated.data.truncate(truncated.data.len() * 2 / 3);
-    robot.publish(now_ns(), model.clone(), 1000.0, truncated, depth.clone()).await.unwrap();
+    robot
+        .publish(now_ns(), model.clone(), 1000.0, truncated, depth.clone())
+        .await
+        .unwrap();
     rejected("colour_decode").await;
     good("after a truncated JPEG").await;
 
-    let small_depth = vsgraphs_sdk::encode::depth(&vec![1000; 320 * 240], 320, 240, DepthEncoding::Raw16).unwrap();
-    robot.publish(now_ns(), model.clone(), 1000.0, colour.clone(), small_depth).await.unwrap();
+    let small_depth =
+        vsgraphs_sdk::encode::depth(&vec![1000; 320 * 240], 320, 240, DepthEncoding::Raw16)
+            .unwrap();
+    robot
+        .publish(now_ns(), model.clone(), 1000.0, colour.clone(), small_depth)
+        .await
+        .unwrap();
     rejected("size_mismatch").await;
     good("after depth of the wrong size").await;
 
     let mut unknown = colour.clone();
     unknown.encoding = 17;
-    robot.publish(now_ns(), model.clone(), 1000.0, unknown, depth.clone()).await.unwrap();
+    robot
+        .publish(now_ns(), model.clone(), 1000.0, unknown, depth.clone())
+        .await
+        .unwrap();
     rejected("unknown_encoding").await;
-    let odd_depth = DepthImage { encoding: 9, data: depth.data.clone() };
-    robot.publish(now_ns(), model.clone(), 1000.0, colour.clone(), odd_depth).await.unwrap();
+    let odd_depth = DepthImage {
+        encoding: 9,
+        data: depth.data.clone(),
+    };
+    robot
+        .publish(now_ns(), model.clone(), 1000.0, colour.clone(), odd_depth)
+        .await
+        .unwrap();
     good("after unknown encodings").await;
 
     let mut no_focal = model.clone();
     no_focal.fx = 0.0;
-    robot.publish(now_ns(), no_focal, 1000.0, colour.clone(), depth.clone()).await.unwrap();
+    robot
+        .publish(now_ns(), no_focal, 1000.0, colour.clone(), depth.clone())
+        .await
+        .unwrap();
     rejected("bad_camera").await;
     good("after a zero focal length").await;
 
-    robot.publish_raw(b"\xff\x00garbage that is no protobuf \x13\x37".to_vec()).await.unwrap();
+    robot
+        .publish_raw(b"\xff\x00garbage that is no protobuf \x13\x37".to_vec())
+        .await
+        .unwrap();
     rejected("malformed").await;
     good("after garbage bytes").await;
 
@@ -114,7 +158,16 @@ async fn bad_frames_are_rejected_with_reasons_and_the_stream_goes_on() {
 
     // A second robot vanishes mid-stream without saying goodbye.
     let ghost = test.robot("ghost").await;
-    ghost.publish(now_ns(), model.clone(), 1000.0, colour.clone(), depth.clone()).await.unwrap();
+    ghost
+        .publish(
+            now_ns(),
+            model.clone(),
+            1000.0,
+            colour.clone(),
+            depth.clone(),
+        )
+        .await
+        .unwrap();
     wait_for("the ghost online", Duration::from_secs(20), || async {
         let s = test.client.robot("ghost").await.ok()?;
         (s.presence == Presence::Online && s.frames.processed == 1).then_some(())

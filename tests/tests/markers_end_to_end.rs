@@ -26,22 +26,46 @@ async fn marker_poses_arrive_within_a_centimetre_and_a_degree() {
     let dictionary = MarkerDictionary::predefined("DICT_4X4_100").unwrap();
     // Three views at about 1 m with the paper's 8 cm markers; each frame holds two markers.
     let views = [
-        [(3, facing(-0.12, 0.0, 1.0, (0.2, -0.3, 0.1))), (11, facing(0.14, 0.05, 1.05, (-0.25, 0.2, -0.3)))],
-        [(42, facing(0.0, -0.1, 0.95, (0.4, 0.1, 0.0))), (7, facing(0.1, 0.12, 1.0, (0.0, 0.45, 0.2)))],
-        [(99, facing(-0.15, 0.1, 1.1, (-0.3, -0.35, 1.0))), (0, facing(0.15, -0.08, 0.9, (0.3, 0.3, -1.2)))],
+        [
+            (3, facing(-0.12, 0.0, 1.0, (0.2, -0.3, 0.1))),
+            (11, facing(0.14, 0.05, 1.05, (-0.25, 0.2, -0.3))),
+        ],
+        [
+            (42, facing(0.0, -0.1, 0.95, (0.4, 0.1, 0.0))),
+            (7, facing(0.1, 0.12, 1.0, (0.0, 0.45, 0.2))),
+        ],
+        [
+            (99, facing(-0.15, 0.1, 1.1, (-0.3, -0.35, 1.0))),
+            (0, facing(0.15, -0.08, 0.9, (0.3, 0.3, -1.2))),
+        ],
     ];
     let mut worst = (0.0f64, 0.0f64);
     for (index, view) in views.iter().enumerate() {
         let placed: Vec<PlacedMarker> = view
             .iter()
-            .map(|&(id, pose)| PlacedMarker { id, side_m: 0.08, camera_from_marker: pose })
+            .map(|&(id, pose)| PlacedMarker {
+                id,
+                side_m: 0.08,
+                camera_from_marker: pose,
+            })
             .collect();
         let rendered = render(&camera, &dictionary, &placed, 2.5).unwrap();
         let (colour, depth) = encode_rendered(&camera, &rendered);
-        let (sequence, _) = robot.publish(now_ns(), camera_model(&camera), 1000.0, colour, depth).await.unwrap();
-        let detections = wait_for("the frame's detections", Duration::from_secs(20), || async {
-            test.client.detections("pose-checker").await.ok().filter(|d| d.sequence == sequence)
-        })
+        let (sequence, _) = robot
+            .publish(now_ns(), camera_model(&camera), 1000.0, colour, depth)
+            .await
+            .unwrap();
+        let detections = wait_for(
+            "the frame's detections",
+            Duration::from_secs(20),
+            || async {
+                test.client
+                    .detections("pose-checker")
+                    .await
+                    .ok()
+                    .filter(|d| d.sequence == sequence)
+            },
+        )
         .await;
         let mut ids: Vec<i32> = detections.markers.iter().map(|m| m.id).collect();
         ids.sort();
@@ -57,13 +81,24 @@ async fn marker_poses_arrive_within_a_centimetre_and_a_degree() {
                 UnitQuaternion::from_quaternion(Quaternion::new(w, x, y, z)),
             );
             let error = truth.inverse() * estimate;
-            let (metres, degrees) = (error.translation.vector.norm(), error.rotation.angle().to_degrees());
+            let (metres, degrees) = (
+                error.translation.vector.norm(),
+                error.rotation.angle().to_degrees(),
+            );
             assert!(metres < 0.01, "marker {} off by {metres:.4} m", marker.id);
-            assert!(degrees < 1.0, "marker {} off by {degrees:.3} degrees", marker.id);
+            assert!(
+                degrees < 1.0,
+                "marker {} off by {degrees:.3} degrees",
+                marker.id
+            );
             worst = (worst.0.max(metres), worst.1.max(degrees));
         }
     }
-    eprintln!("worst marker pose error: {:.2} mm, {:.3} degrees", worst.0 * 1e3, worst.1);
+    eprintln!(
+        "worst marker pose error: {:.2} mm, {:.3} degrees",
+        worst.0 * 1e3,
+        worst.1
+    );
     let status = test.client.robot("pose-checker").await.unwrap();
     assert_eq!(status.frames.processed, 3);
     assert_eq!(status.frames.rejected, 0);

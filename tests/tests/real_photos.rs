@@ -50,7 +50,14 @@ fn check(
         CornerRefinement::None => gold_tolerance,
         _ => gold_tolerance + 1.0,
     };
-    let report = detect_image(&dir.join("aruco").join(image), dictionary, refinement, camera, side).unwrap();
+    let report = detect_image(
+        &dir.join("aruco").join(image),
+        dictionary,
+        refinement,
+        camera,
+        side,
+    )
+    .unwrap();
     let mut found: Vec<i64> = report.markers.iter().map(|m| i64::from(m.id)).collect();
     let mut wanted: Vec<i64> = expected.iter().map(|e| e.0).collect();
     found.sort();
@@ -58,31 +65,57 @@ fn check(
     assert_eq!(found, wanted, "{image}: ids");
     let mut worst = 0.0f64;
     for (id, corners) in &expected {
-        let marker = report.markers.iter().find(|m| i64::from(m.id) == *id).unwrap();
+        let marker = report
+            .markers
+            .iter()
+            .find(|m| i64::from(m.id) == *id)
+            .unwrap();
         for (gold, got) in corners.iter().zip(marker.corners_px.iter()) {
             // Per coordinate, as OpenCV's own test compares them (its gold values are whole pixels).
-            let error = (gold[0] - f64::from(got[0])).abs().max((gold[1] - f64::from(got[1])).abs());
-            assert!(error <= tolerance, "{image}: marker {id} corner {got:?} is {error:.2} px from {gold:?}");
+            let error = (gold[0] - f64::from(got[0]))
+                .abs()
+                .max((gold[1] - f64::from(got[1])).abs());
+            assert!(
+                error <= tolerance,
+                "{image}: marker {id} corner {got:?} is {error:.2} px from {gold:?}"
+            );
             worst = worst.max(error);
         }
     }
-    eprintln!("{image} ({refinement:?}): {} markers, worst corner coordinate {worst:.2} px from gold", expected.len());
+    eprintln!(
+        "{image} ({refinement:?}): {} markers, worst corner coordinate {worst:.2} px from gold",
+        expected.len()
+    );
     worst
 }
 
 #[test]
 fn single_markers_photo_gives_the_six_gold_markers() {
-    let Some(dir) = data_dir("single_markers_photo") else { return };
+    let Some(dir) = data_dir("single_markers_photo") else {
+        return;
+    };
     let camera = dir.join("aruco/tutorial_camera_params.yml");
-    for refinement in [CornerRefinement::None, CornerRefinement::Subpixel, CornerRefinement::Contour] {
+    for refinement in [
+        CornerRefinement::None,
+        CornerRefinement::Subpixel,
+        CornerRefinement::Contour,
+    ] {
         let dictionary = MarkerDictionary::predefined("DICT_6X6_250").unwrap();
-        check("singlemarkersoriginal.jpg", dictionary, Some(&camera), Some(0.05), refinement);
+        check(
+            "singlemarkersoriginal.jpg",
+            dictionary,
+            Some(&camera),
+            Some(0.05),
+            refinement,
+        );
     }
 }
 
 #[test]
 fn single_markers_photo_gives_plausible_poses() {
-    let Some(dir) = data_dir("single_markers_poses") else { return };
+    let Some(dir) = data_dir("single_markers_poses") else {
+        return;
+    };
     let camera = dir.join("aruco/tutorial_camera_params.yml");
     let report = detect_image(
         &dir.join("aruco/singlemarkersoriginal.jpg"),
@@ -96,17 +129,33 @@ fn single_markers_photo_gives_plausible_poses() {
         let pose = marker.pose.as_ref().unwrap();
         // The markers lie on a table in front of the camera: ahead of it, within a metre, and
         // consistent with their corners.
-        assert!(pose.translation_m[2] > 0.1 && pose.translation_m[2] < 1.0, "{:?}", pose.translation_m);
-        assert!(pose.reprojection_error_px < 1.0, "marker {}: {} px", marker.id, pose.reprojection_error_px);
+        assert!(
+            pose.translation_m[2] > 0.1 && pose.translation_m[2] < 1.0,
+            "{:?}",
+            pose.translation_m
+        );
+        assert!(
+            pose.reprojection_error_px < 1.0,
+            "marker {}: {} px",
+            marker.id,
+            pose.reprojection_error_px
+        );
     }
 }
 
 #[test]
 fn grid_board_with_a_custom_dictionary_gives_its_35_markers() {
-    let Some(dir) = data_dir("grid_board_custom_dictionary") else { return };
-    let dictionary = MarkerDictionary::from_yaml_file(&dir.join("aruco/tutorial_dict.yml")).unwrap();
+    let Some(dir) = data_dir("grid_board_custom_dictionary") else {
+        return;
+    };
+    let dictionary =
+        MarkerDictionary::from_yaml_file(&dir.join("aruco/tutorial_dict.yml")).unwrap();
     assert_eq!((dictionary.markers, dictionary.marker_size), (35, 6));
-    for refinement in [CornerRefinement::None, CornerRefinement::Subpixel, CornerRefinement::Contour] {
+    for refinement in [
+        CornerRefinement::None,
+        CornerRefinement::Subpixel,
+        CornerRefinement::Contour,
+    ] {
         check("gboriginal.png", dictionary.clone(), None, None, refinement);
     }
 }

@@ -10,7 +10,10 @@ use vsgraphs_sdk::zenoh_config::ZenohSettings;
 use vsgraphs_sdk::{dataset, Client, Delivery, Robot, RobotConfig};
 
 #[derive(Parser)]
-#[command(version, about = "A vsgraphs robot: streams RGB-D frames to the server over zenoh")]
+#[command(
+    version,
+    about = "A vsgraphs robot: streams RGB-D frames to the server over zenoh"
+)]
 struct Cli {
     #[command(subcommand)]
     command: Command,
@@ -85,7 +88,8 @@ async fn main() -> anyhow::Result<()> {
             original_timestamps,
             server,
         } => {
-            let dataset = dataset::open(&dir).with_context(|| format!("opening {}", dir.display()))?;
+            let dataset =
+                dataset::open(&dir).with_context(|| format!("opening {}", dir.display()))?;
             for warning in &dataset.warnings {
                 eprintln!("warning: {warning}");
             }
@@ -93,10 +97,20 @@ async fn main() -> anyhow::Result<()> {
             let config = RobotConfig {
                 robot_id: robot_id.clone(),
                 session_id: None,
-                zenoh: ZenohSettings { connect, multicast_scouting: scout, ..ZenohSettings::default() },
-                delivery: if live { Delivery::Live } else { Delivery::Reliable },
+                zenoh: ZenohSettings {
+                    connect,
+                    multicast_scouting: scout,
+                    ..ZenohSettings::default()
+                },
+                delivery: if live {
+                    Delivery::Live
+                } else {
+                    Delivery::Reliable
+                },
             };
-            let robot = Robot::connect(config).await.context("connecting to zenoh")?;
+            let robot = Robot::connect(config)
+                .await
+                .context("connecting to zenoh")?;
             eprintln!(
                 "{robot_id}: playing {} frames of {} ({:?}, {}x{}, fx {:.1}) as session {}",
                 dataset.frames.len(),

@@ -1,1 +1,74 @@
-fn main(){}
+//! One frame's ingest path on the server, from the bytes zenoh delivers to marker detections:
+//! protobuf decode, validation, JPEG and RVL decode, detection, poses.
+use criterion::{criterion_group, criterion_main, Criterion};
+use nalgebra::{Isometry3, Translation3, UnitQuaternion};
+use vsgraphs_proto::{CameraModel, DepthEncoding, Message, PixelFormat, RgbdFrame};
+use vsgraphs_sdk::encode;
+use vsgraphs_server::config::MarkerConfig;
+use vsgraphs_server::pipeline::FrameProcessor;
+use vsgraphs_vision::camera::PinholeCamera;
+use vsgraphs_vision::dictionary::MarkerDictionary;
+use vsgraphs_vision::synth::{render, PlacedMarker};
+
+fn ingest(c: &mut Criterion) {
+    let camera = PinholeCamera::new(640, 480, [605.86, 606.27, 325.02, 244.76], vec![]).unwrap();
+    let dictionary = MarkerDictionary::predefined("DICT_4X4_100").unwrap();
+    let facing = UnitQuaternion::from_euler_angles(std::f64::consts::PI, 0.0, 0.0);
+    let markers: Vec<PlacedMarker> = (0..3)
+        .map(|i| PlacedMarker {
+            id: i * 5,
+            side_m: 0.08,
+            camera_from_marker: Isometry3::from_parts(
+                Translation3::new(f64::from(i) * 0.15 - 0.15, 0.0, 1.0),
+                facing,
+            ),
+        })
+        .collect();
+    let frame = render(&camera, &dictionary, &markers, 2.0).unwrap();
+    let colour = encode::colour_jpeg(
+        &frame.grey_bytes().unwrap(),
+        640,
+        480,
+        PixelFormat::Mono8,
+        90,
+    )
+    .unwrap();
+    let depth = encode::depth(&frame.depth_mm, 640, 480, DepthEncoding::Rvl).unwrap();
+    let bytes = RgbdFrame {
+        robot_id: "bench".into(),
+        session_id: "s".into(),
+        sequence: 1,
+        timestamp_ns: 1,
+        camera: Some(CameraModel {
+            width: 640,
+            height: 480,
+            fx: camera.fx,
+            fy: camera.fy,
+            cx: camera.cx,
+            cy: camera.cy,
+            distortion: vec![],
+        }),
+        depth_scale: 1000.0,
+        colour: Some(colour),
+        depth: Some(depth),
+        odometry: None,
+        imu: vec![],
+    }
+    .encode_to_vec();
+    let mut processor = FrameProcessor::new(&MarkerConfig::default(), 32 << 20).unwrap();
+    assert_eq!(
+        processor
+            .process("bench", &bytes, None)
+            .unwrap()
+            .markers
+            .len(),
+        3
+    );
+    eprintln!("frame on the wire: {} bytes", bytes.len());
+    c.bench_function("ingest_frame_bytes_to_detections_640x480", |b| {
+        b.iter(|| processor.process("bench", &bytes, None).unwrap())
+    });
+}
+
+criterion_group!(benches, ingest);
+criterion_main!(benches);

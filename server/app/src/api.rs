@@ -11,8 +11,8 @@ use axum::{Json, Router};
 use std::sync::Arc;
 use utoipa::OpenApi;
 use vsgraphs_proto::api::{
-    ApiError, DistanceSource, FrameCounters, FrameDetections, Health, MarkerDetection, MarkerPose, Presence, Rejection,
-    RobotStatus, Timing,
+    ApiError, DistanceSource, FrameCounters, FrameDetections, Health, MarkerDetection, MarkerPose,
+    Presence, Rejection, RobotStatus, Timing,
 };
 
 /// An error answer: a status code and a JSON [`ApiError`] body.
@@ -25,31 +25,52 @@ pub struct Failure {
 
 impl Failure {
     pub fn not_found(code: &'static str, message: impl Into<String>) -> Self {
-        Self { status: StatusCode::NOT_FOUND, code, message: message.into() }
+        Self {
+            status: StatusCode::NOT_FOUND,
+            code,
+            message: message.into(),
+        }
     }
 }
 
 impl IntoResponse for Failure {
     fn into_response(self) -> Response {
-        let body = ApiError { error: self.code.into(), message: self.message };
+        let body = ApiError {
+            error: self.code.into(),
+            message: self.message,
+        };
         (self.status, Json(body)).into_response()
     }
 }
 
 #[derive(OpenApi)]
 #[openapi(
-    info(title = "vsgraphs", description = "Robots, their frames and their marker detections."),
+    info(
+        title = "vsgraphs",
+        description = "Robots, their frames and their marker detections."
+    ),
     paths(health, list_robots, get_robot, get_detections),
     components(schemas(
-        Health, RobotStatus, Presence, FrameCounters, Timing, Rejection, FrameDetections, MarkerDetection,
-        MarkerPose, DistanceSource, ApiError
+        Health,
+        RobotStatus,
+        Presence,
+        FrameCounters,
+        Timing,
+        Rejection,
+        FrameDetections,
+        MarkerDetection,
+        MarkerPose,
+        DistanceSource,
+        ApiError
     ))
 )]
 struct ApiDoc;
 
 /// The OpenAPI document of this API.
 pub fn openapi_json() -> String {
-    ApiDoc::openapi().to_pretty_json().expect("the OpenAPI document serialises")
+    ApiDoc::openapi()
+        .to_pretty_json()
+        .expect("the OpenAPI document serialises")
 }
 
 /// The `/api/v1` routes.
@@ -59,13 +80,19 @@ pub fn router(registry: Arc<Registry>) -> Router {
         .route("/api/v1/robots", get(list_robots))
         .route("/api/v1/robots/{robot_id}", get(get_robot))
         .route("/api/v1/robots/{robot_id}/detections", get(get_detections))
-        .route("/api/v1/openapi.json", get(|| async { ([("content-type", "application/json")], openapi_json()) }))
+        .route(
+            "/api/v1/openapi.json",
+            get(|| async { ([("content-type", "application/json")], openapi_json()) }),
+        )
         .route("/api/{*rest}", get(unknown_endpoint))
         .with_state(registry)
 }
 
 async fn unknown_endpoint(Path(rest): Path<String>) -> Failure {
-    Failure::not_found("no_such_endpoint", format!("/api/{rest} is not an endpoint; see /api/v1/openapi.json"))
+    Failure::not_found(
+        "no_such_endpoint",
+        format!("/api/{rest} is not an endpoint; see /api/v1/openapi.json"),
+    )
 }
 
 /// Server health and counts.
@@ -76,7 +103,9 @@ async fn health(State(registry): State<Arc<Registry>>) -> Json<Health> {
         version: env!("CARGO_PKG_VERSION").into(),
         uptime_s: registry.started.elapsed().as_secs_f64(),
         robots: registry.len(),
-        frames_on_bad_keys: registry.frames_on_bad_keys.load(std::sync::atomic::Ordering::Relaxed),
+        frames_on_bad_keys: registry
+            .frames_on_bad_keys
+            .load(std::sync::atomic::Ordering::Relaxed),
     })
 }
 
@@ -93,8 +122,13 @@ async fn list_robots(State(registry): State<Arc<Registry>>) -> Json<Vec<RobotSta
     params(("robot_id" = String, Path, description = "The robot's id")),
     responses((status = 200, body = RobotStatus), (status = 404, body = ApiError))
 )]
-async fn get_robot(State(registry): State<Arc<Registry>>, Path(robot_id): Path<String>) -> Result<Json<RobotStatus>, Failure> {
-    let robot = registry.get(&robot_id).ok_or_else(|| unknown_robot(&robot_id))?;
+async fn get_robot(
+    State(registry): State<Arc<Registry>>,
+    Path(robot_id): Path<String>,
+) -> Result<Json<RobotStatus>, Failure> {
+    let robot = registry
+        .get(&robot_id)
+        .ok_or_else(|| unknown_robot(&robot_id))?;
     Ok(Json(robot.status()))
 }
 
@@ -112,15 +146,23 @@ async fn get_detections(
     State(registry): State<Arc<Registry>>,
     Path(robot_id): Path<String>,
 ) -> Result<Json<FrameDetections>, Failure> {
-    let robot = registry.get(&robot_id).ok_or_else(|| unknown_robot(&robot_id))?;
+    let robot = registry
+        .get(&robot_id)
+        .ok_or_else(|| unknown_robot(&robot_id))?;
     let latest = robot.latest_detections().ok_or_else(|| {
-        Failure::not_found("no_frame_processed", format!("robot {robot_id:?} has no processed frame yet"))
+        Failure::not_found(
+            "no_frame_processed",
+            format!("robot {robot_id:?} has no processed frame yet"),
+        )
     })?;
     Ok(Json((*latest).clone()))
 }
 
 fn unknown_robot(robot_id: &str) -> Failure {
-    Failure::not_found("robot_not_found", format!("no robot {robot_id:?} has been seen"))
+    Failure::not_found(
+        "robot_not_found",
+        format!("no robot {robot_id:?} has been seen"),
+    )
 }
 
 #[cfg(test)]
@@ -131,9 +173,14 @@ mod tests {
     use tower::ServiceExt;
 
     async fn get_json(app: Router, uri: &str) -> (StatusCode, serde_json::Value) {
-        let response = app.oneshot(Request::get(uri).body(Body::empty()).unwrap()).await.unwrap();
+        let response = app
+            .oneshot(Request::get(uri).body(Body::empty()).unwrap())
+            .await
+            .unwrap();
         let status = response.status();
-        let bytes = axum::body::to_bytes(response.into_body(), 1 << 20).await.unwrap();
+        let bytes = axum::body::to_bytes(response.into_body(), 1 << 20)
+            .await
+            .unwrap();
         (status, serde_json::from_slice(&bytes).unwrap())
     }
 
@@ -143,11 +190,20 @@ mod tests {
         registry.get_or_insert("known").unwrap();
         let app = router(registry);
         let (status, body) = get_json(app.clone(), "/api/v1/robots/ghost").await;
-        assert_eq!((status, body["error"].as_str()), (StatusCode::NOT_FOUND, Some("robot_not_found")));
+        assert_eq!(
+            (status, body["error"].as_str()),
+            (StatusCode::NOT_FOUND, Some("robot_not_found"))
+        );
         let (status, body) = get_json(app.clone(), "/api/v1/robots/known/detections").await;
-        assert_eq!((status, body["error"].as_str()), (StatusCode::NOT_FOUND, Some("no_frame_processed")));
+        assert_eq!(
+            (status, body["error"].as_str()),
+            (StatusCode::NOT_FOUND, Some("no_frame_processed"))
+        );
         let (status, body) = get_json(app.clone(), "/api/v1/nothing/here").await;
-        assert_eq!((status, body["error"].as_str()), (StatusCode::NOT_FOUND, Some("no_such_endpoint")));
+        assert_eq!(
+            (status, body["error"].as_str()),
+            (StatusCode::NOT_FOUND, Some("no_such_endpoint"))
+        );
         let (status, body) = get_json(app, "/api/v1/robots").await;
         assert_eq!(status, StatusCode::OK);
         assert_eq!(body[0]["robot_id"], "known");
@@ -160,8 +216,17 @@ mod tests {
         let (status, doc) = get_json(router(registry), "/api/v1/openapi.json").await;
         assert_eq!(status, StatusCode::OK);
         let paths = doc["paths"].as_object().unwrap();
-        for path in ["/api/v1/health", "/api/v1/robots", "/api/v1/robots/{robot_id}", "/api/v1/robots/{robot_id}/detections"] {
-            assert!(paths.contains_key(path), "{path} missing from {:?}", paths.keys());
+        for path in [
+            "/api/v1/health",
+            "/api/v1/robots",
+            "/api/v1/robots/{robot_id}",
+            "/api/v1/robots/{robot_id}/detections",
+        ] {
+            assert!(
+                paths.contains_key(path),
+                "{path} missing from {:?}",
+                paths.keys()
+            );
         }
         assert!(doc["components"]["schemas"]["RobotStatus"].is_object());
     }

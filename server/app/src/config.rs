@@ -21,7 +21,10 @@ impl Default for Config {
     fn default() -> Self {
         Self {
             http: HttpConfig::default(),
-            zenoh: ZenohSettings { listen: vec!["tcp/0.0.0.0:7447".into()], ..ZenohSettings::default() },
+            zenoh: ZenohSettings {
+                listen: vec!["tcp/0.0.0.0:7447".into()],
+                ..ZenohSettings::default()
+            },
             ingest: IngestConfig::default(),
             markers: MarkerConfig::default(),
         }
@@ -36,7 +39,9 @@ pub struct HttpConfig {
 
 impl Default for HttpConfig {
     fn default() -> Self {
-        Self { listen: SocketAddr::from(([127, 0, 0, 1], 8080)) }
+        Self {
+            listen: SocketAddr::from(([127, 0, 0, 1], 8080)),
+        }
     }
 }
 
@@ -61,7 +66,12 @@ pub struct IngestConfig {
 
 impl Default for IngestConfig {
     fn default() -> Self {
-        Self { queue_capacity: 4, drop_policy: DropPolicy::DropOldest, max_robots: 64, max_frame_bytes: 32 << 20 }
+        Self {
+            queue_capacity: 4,
+            drop_policy: DropPolicy::DropOldest,
+            max_robots: 64,
+            max_frame_bytes: 32 << 20,
+        }
     }
 }
 
@@ -92,18 +102,33 @@ impl Default for MarkerConfig {
 #[derive(Debug, Error)]
 pub enum ConfigError {
     #[error("cannot read {path}: {source}")]
-    Io { path: PathBuf, source: std::io::Error },
+    Io {
+        path: PathBuf,
+        source: std::io::Error,
+    },
     #[error("{path}: {source}")]
-    Parse { path: PathBuf, source: toml::de::Error },
+    Parse {
+        path: PathBuf,
+        source: toml::de::Error,
+    },
     #[error("{field}: {message}")]
-    Invalid { field: &'static str, message: String },
+    Invalid {
+        field: &'static str,
+        message: String,
+    },
 }
 
 impl Config {
     /// Reads a configuration file; fields it leaves out keep their defaults.
     pub fn load(path: &Path) -> Result<Self, ConfigError> {
-        let text = std::fs::read_to_string(path).map_err(|source| ConfigError::Io { path: path.to_owned(), source })?;
-        let config: Config = toml::from_str(&text).map_err(|source| ConfigError::Parse { path: path.to_owned(), source })?;
+        let text = std::fs::read_to_string(path).map_err(|source| ConfigError::Io {
+            path: path.to_owned(),
+            source,
+        })?;
+        let config: Config = toml::from_str(&text).map_err(|source| ConfigError::Parse {
+            path: path.to_owned(),
+            source,
+        })?;
         config.validate()?;
         Ok(config)
     }
@@ -121,10 +146,16 @@ impl Config {
             return invalid("ingest.max_frame_bytes", "must be at least 1024".into());
         }
         if !(self.markers.side_m.is_finite() && self.markers.side_m > 0.0) {
-            return invalid("markers.side_m", format!("{} is not a positive length in metres", self.markers.side_m));
+            return invalid(
+                "markers.side_m",
+                format!("{} is not a positive length in metres", self.markers.side_m),
+            );
         }
         if !(self.markers.depth_agreement.is_finite() && self.markers.depth_agreement > 0.0) {
-            return invalid("markers.depth_agreement", "must be a positive fraction".into());
+            return invalid(
+                "markers.depth_agreement",
+                "must be a positive fraction".into(),
+            );
         }
         if let Err(e) = self.zenoh.to_config() {
             return invalid("zenoh", e.to_string());
@@ -151,11 +182,20 @@ mod tests {
         let message = Config::load(&path).unwrap_err().to_string();
         assert!(message.contains("queue_capacty"), "{message}");
         std::fs::write(&path, "[markers]\nside_m = -1.0\n").unwrap();
-        assert!(Config::load(&path).unwrap_err().to_string().contains("markers.side_m"));
+        assert!(Config::load(&path)
+            .unwrap_err()
+            .to_string()
+            .contains("markers.side_m"));
         std::fs::write(&path, "[ingest]\ndrop_policy = \"sometimes\"\n").unwrap();
-        assert!(Config::load(&path).unwrap_err().to_string().contains("sometimes"));
+        assert!(Config::load(&path)
+            .unwrap_err()
+            .to_string()
+            .contains("sometimes"));
         std::fs::write(&path, "[http]\nlisten = \"127.0.0.1:9000\"\n").unwrap();
         assert_eq!(Config::load(&path).unwrap().http.listen.port(), 9000);
-        assert!(matches!(Config::load(&dir.path().join("missing.toml")), Err(ConfigError::Io { .. })));
+        assert!(matches!(
+            Config::load(&dir.path().join("missing.toml")),
+            Err(ConfigError::Io { .. })
+        ));
     }
 }

@@ -1,10 +1,10 @@
 //! `vsgraphs-server detect IMAGE`: marker detection on one photo, to check a camera and marker
 //! set-up without a robot. Prints JSON.
 
+use crate::pipeline::api_pose;
 use anyhow::Context;
 use serde::Serialize;
 use std::path::Path;
-use crate::pipeline::api_pose;
 use vsgraphs_proto::api::MarkerDetection;
 use vsgraphs_vision::aruco::{CornerRefinement, MarkerDetector};
 use vsgraphs_vision::camera::PinholeCamera;
@@ -48,8 +48,13 @@ pub fn read_camera_yaml(path: &Path, width: u32, height: u32) -> anyhow::Result<
         d.convert_to(&mut d64, vsgraphs_vision::opencv::core::CV_64F, 1.0, 0.0)?;
         d64.data_typed::<f64>()?.to_vec()
     };
-    Ok(PinholeCamera::new(width, height, [at(0, 0)?, at(1, 1)?, at(0, 2)?, at(1, 2)?], distortion)
-        .with_context(|| format!("{name}: unusable camera"))?)
+    Ok(PinholeCamera::new(
+        width,
+        height,
+        [at(0, 0)?, at(1, 1)?, at(0, 2)?, at(1, 2)?],
+        distortion,
+    )
+    .with_context(|| format!("{name}: unusable camera"))?)
 }
 
 /// Detects markers in an image file; poses when both a camera and a marker side are given.
@@ -61,21 +66,43 @@ pub fn detect_image(
     side_m: Option<f64>,
 ) -> anyhow::Result<DetectReport> {
     let image = imgcodecs::imread(image_path, imgcodecs::IMREAD_GRAYSCALE)?;
-    anyhow::ensure!(!image.empty(), "cannot read an image from {}", image_path.display());
+    anyhow::ensure!(
+        !image.empty(),
+        "cannot read an image from {}",
+        image_path.display()
+    );
     let (width, height) = (image.cols() as u32, image.rows() as u32);
     let dictionary_name = dictionary.name.clone();
     let mut detector = MarkerDetector::new(dictionary, refinement)?;
     let detections = detector.detect(&image)?;
     let estimator = match (camera_path, side_m) {
-        (Some(camera), Some(side)) => Some(PoseEstimator::new(read_camera_yaml(camera, width, height)?, side)?),
+        (Some(camera), Some(side)) => Some(PoseEstimator::new(
+            read_camera_yaml(camera, width, height)?,
+            side,
+        )?),
         _ => None,
     };
     let markers = detections
         .into_iter()
         .map(|d| {
-            let pose = estimator.as_ref().map(|e| e.estimate(&d, None)).transpose()?.as_ref().map(api_pose);
-            Ok(MarkerDetection { id: d.id, corners_px: d.corners, pose })
+            let pose = estimator
+                .as_ref()
+                .map(|e| e.estimate(&d, None))
+                .transpose()?
+                .as_ref()
+                .map(api_pose);
+            Ok(MarkerDetection {
+                id: d.id,
+                corners_px: d.corners,
+                pose,
+            })
         })
         .collect::<anyhow::Result<_>>()?;
-    Ok(DetectReport { image: image_path.display().to_string(), width, height, dictionary: dictionary_name, markers })
+    Ok(DetectReport {
+        image: image_path.display().to_string(),
+        width,
+        height,
+        dictionary: dictionary_name,
+        markers,
+    })
 }

@@ -67,7 +67,14 @@ impl Server {
                 .await
         });
         tracing::info!(%http_addr, zenoh = ?config.zenoh.listen, "server started");
-        Ok(Self { registry, http_addr, ingest, session, http, stop_http })
+        Ok(Self {
+            registry,
+            http_addr,
+            ingest,
+            session,
+            http,
+            stop_http,
+        })
     }
 
     /// Where the REST API and the page are served.
@@ -77,8 +84,17 @@ impl Server {
 
     /// Closes zenoh, drains the robots' queues, and stops HTTP.
     pub async fn stop(self) -> anyhow::Result<()> {
-        let Server { ingest, session, http, stop_http, .. } = self;
-        session.close().await.map_err(|e| anyhow::anyhow!("closing zenoh: {e}"))?;
+        let Server {
+            ingest,
+            session,
+            http,
+            stop_http,
+            ..
+        } = self;
+        session
+            .close()
+            .await
+            .map_err(|e| anyhow::anyhow!("closing zenoh: {e}"))?;
         tokio::task::spawn_blocking(move || ingest.stop()).await?;
         let _ = stop_http.send(());
         http.await??;

@@ -10,7 +10,10 @@ use vsgraphs_server::{detect, Server};
 use vsgraphs_vision::aruco::CornerRefinement;
 
 #[derive(Parser)]
-#[command(version, about = "vsgraphs mapping server: RGB-D frames in over zenoh, building model out over REST")]
+#[command(
+    version,
+    about = "vsgraphs mapping server: RGB-D frames in over zenoh, building model out over REST"
+)]
 struct Cli {
     /// Configuration file (TOML); see config/vsgraphs.toml for every field and its default.
     #[arg(long, env = "VSGRAPHS_CONFIG", global = true)]
@@ -122,7 +125,8 @@ fn effective_config(cli: &Cli) -> anyhow::Result<Config> {
 async fn main() -> anyhow::Result<()> {
     tracing_subscriber::fmt()
         .with_env_filter(
-            tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| "info,zenoh=warn".into()),
+            tracing_subscriber::EnvFilter::try_from_default_env()
+                .unwrap_or_else(|_| "info,zenoh=warn".into()),
         )
         .with_writer(std::io::stderr)
         .init();
@@ -131,14 +135,26 @@ async fn main() -> anyhow::Result<()> {
     match cli.command.unwrap_or(Command::Serve) {
         Command::Serve => {
             let server = Server::start(config).await?;
-            println!("vsgraphs server: page and API at http://{}/ (Ctrl-C stops)", server.http_addr());
-            tokio::signal::ctrl_c().await.context("waiting for Ctrl-C")?;
+            println!(
+                "vsgraphs server: page and API at http://{}/ (Ctrl-C stops)",
+                server.http_addr()
+            );
+            tokio::signal::ctrl_c()
+                .await
+                .context("waiting for Ctrl-C")?;
             eprintln!("stopping");
             server.stop().await?;
         }
-        Command::Detect { image, camera, refinement } => {
+        Command::Detect {
+            image,
+            camera,
+            refinement,
+        } => {
             let dictionary = vsgraphs_server::pipeline::load_dictionary(&config.markers)?;
-            let side = cli.overrides.marker_side.or(camera.as_ref().map(|_| config.markers.side_m));
+            let side = cli
+                .overrides
+                .marker_side
+                .or(camera.as_ref().map(|_| config.markers.side_m));
             let report = tokio::task::spawn_blocking(move || {
                 detect::detect_image(&image, dictionary, refinement, camera.as_deref(), side)
             })
@@ -146,10 +162,20 @@ async fn main() -> anyhow::Result<()> {
             println!("{}", serde_json::to_string_pretty(&report)?);
         }
         Command::PrintConfig => print!("{}", toml::to_string_pretty(&config)?),
-        Command::SimulateMarkers { robot_id, connect, rate } => {
+        Command::SimulateMarkers {
+            robot_id,
+            connect,
+            rate,
+        } => {
             let dictionary = vsgraphs_server::pipeline::load_dictionary(&config.markers)?;
-            let robot = vsgraphs_sdk::Robot::connect(vsgraphs_sdk::RobotConfig::connecting_to(&robot_id, connect)).await?;
-            println!("{robot_id}: streaming rendered {} markers at {rate} Hz (Ctrl-C stops)", dictionary.name);
+            let robot = vsgraphs_sdk::Robot::connect(vsgraphs_sdk::RobotConfig::connecting_to(
+                &robot_id, connect,
+            ))
+            .await?;
+            println!(
+                "{robot_id}: streaming rendered {} markers at {rate} Hz (Ctrl-C stops)",
+                dictionary.name
+            );
             tokio::select! {
                 result = vsgraphs_server::simulate::simulate_markers(robot, dictionary, config.markers.side_m, rate) => result?,
                 _ = tokio::signal::ctrl_c() => {}

@@ -62,7 +62,11 @@ pub struct Rejection {
 }
 
 fn reject(reason: Reason, message: impl Into<String>, sequence: Option<u64>) -> Rejection {
-    Rejection { reason, message: message.into(), sequence }
+    Rejection {
+        reason,
+        message: message.into(),
+        sequence,
+    }
 }
 
 /// A frame after validation and detection.
@@ -98,7 +102,12 @@ impl FrameProcessor {
     pub fn new(settings: &MarkerConfig, max_frame_bytes: usize) -> Result<Self, DictionaryError> {
         let dictionary = load_dictionary(settings)?;
         let detector = MarkerDetector::new(dictionary, settings.corner_refinement)?;
-        Ok(Self { detector, settings: settings.clone(), max_frame_bytes, estimator: None })
+        Ok(Self {
+            detector,
+            settings: settings.clone(),
+            max_frame_bytes,
+            estimator: None,
+        })
     }
 
     /// Decodes the protobuf and checks everything but the image contents.
@@ -106,7 +115,11 @@ impl FrameProcessor {
         if bytes.len() > self.max_frame_bytes {
             return Err(reject(
                 Reason::TooLarge,
-                format!("frame of {} bytes exceeds the {} allowed", bytes.len(), self.max_frame_bytes),
+                format!(
+                    "frame of {} bytes exceeds the {} allowed",
+                    bytes.len(),
+                    self.max_frame_bytes
+                ),
                 None,
             ));
         }
@@ -116,12 +129,20 @@ impl FrameProcessor {
         if frame.robot_id != robot_id {
             return Err(reject(
                 Reason::RobotIdMismatch,
-                format!("frame names robot {:?} but was published on {}", frame.robot_id, keys::frames(robot_id)),
+                format!(
+                    "frame names robot {:?} but was published on {}",
+                    frame.robot_id,
+                    keys::frames(robot_id)
+                ),
                 sequence,
             ));
         }
         if frame.session_id.is_empty() {
-            return Err(reject(Reason::MissingField, "session_id is empty", sequence));
+            return Err(reject(
+                Reason::MissingField,
+                "session_id is empty",
+                sequence,
+            ));
         }
         if frame.timestamp_ns == 0 {
             return Err(reject(Reason::BadTimestamp, "timestamp_ns is 0", sequence));
@@ -129,7 +150,10 @@ impl FrameProcessor {
         if !(frame.depth_scale.is_finite() && frame.depth_scale > 0.0) {
             return Err(reject(
                 Reason::BadDepthScale,
-                format!("depth_scale {} is not a positive number of units per metre", frame.depth_scale),
+                format!(
+                    "depth_scale {} is not a positive number of units per metre",
+                    frame.depth_scale
+                ),
                 sequence,
             ));
         }
@@ -139,7 +163,11 @@ impl FrameProcessor {
             (frame.depth.is_some(), "depth"),
         ] {
             if !present {
-                return Err(reject(Reason::MissingField, format!("{name} is missing"), sequence));
+                return Err(reject(
+                    Reason::MissingField,
+                    format!("{name} is missing"),
+                    sequence,
+                ));
             }
         }
         Ok(frame)
@@ -156,7 +184,9 @@ impl FrameProcessor {
         let frame = self.parse(robot_id, bytes)?;
         let sequence = Some(frame.sequence);
         if let Some(previous) = previous {
-            if previous.session_id == frame.session_id && frame.timestamp_ns <= previous.timestamp_ns {
+            if previous.session_id == frame.session_id
+                && frame.timestamp_ns <= previous.timestamp_ns
+            {
                 return Err(reject(
                     Reason::TimestampNotIncreasing,
                     format!(
@@ -171,7 +201,12 @@ impl FrameProcessor {
         let camera = PinholeCamera::new(
             wire_camera.width,
             wire_camera.height,
-            [wire_camera.fx, wire_camera.fy, wire_camera.cx, wire_camera.cy],
+            [
+                wire_camera.fx,
+                wire_camera.fy,
+                wire_camera.cx,
+                wire_camera.cy,
+            ],
             wire_camera.distortion.clone(),
         )
         .map_err(|e| reject(Reason::BadCamera, e.to_string(), sequence))?;
@@ -179,27 +214,48 @@ impl FrameProcessor {
         let grey = decode::colour_to_grey(colour, camera.width, camera.height)
             .map_err(|e| decode_rejection(e, Reason::ColourDecode, sequence))?;
         let depth_wire = frame.depth.as_ref().expect("checked by parse");
-        let depth = decode::depth(depth_wire.encoding, &depth_wire.data, camera.width, camera.height, frame.depth_scale)
-            .map_err(|e| decode_rejection(e, Reason::DepthDecode, sequence))?;
+        let depth = decode::depth(
+            depth_wire.encoding,
+            &depth_wire.data,
+            camera.width,
+            camera.height,
+            frame.depth_scale,
+        )
+        .map_err(|e| decode_rejection(e, Reason::DepthDecode, sequence))?;
 
         let detections = self
             .detector
             .detect(&grey)
             .map_err(|e| reject(Reason::Detection, e.to_string(), sequence))?;
-        if self.estimator.as_ref().is_none_or(|e| e.camera() != &camera) {
+        if self
+            .estimator
+            .as_ref()
+            .is_none_or(|e| e.camera() != &camera)
+        {
             self.estimator = Some(
                 PoseEstimator::new(camera, self.settings.side_m)
                     .map_err(|e| reject(Reason::BadCamera, e.to_string(), sequence))?,
             );
         }
         let estimator = self.estimator.as_ref().expect("set above");
-        let depth_check = self.settings.depth_refinement.then_some((&depth, self.settings.depth_agreement));
+        let depth_check = self
+            .settings
+            .depth_refinement
+            .then_some((&depth, self.settings.depth_agreement));
         let markers = detections
             .into_iter()
             .map(|detection| {
                 // A pose that cannot be computed leaves the detection without one.
-                let pose = estimator.estimate(&detection, depth_check).ok().as_ref().map(api_pose);
-                MarkerDetection { id: detection.id, corners_px: detection.corners, pose }
+                let pose = estimator
+                    .estimate(&detection, depth_check)
+                    .ok()
+                    .as_ref()
+                    .map(api_pose);
+                MarkerDetection {
+                    id: detection.id,
+                    corners_px: detection.corners,
+                    pose,
+                }
             })
             .collect();
         Ok(Processed {
@@ -216,11 +272,13 @@ impl FrameProcessor {
 
 fn decode_rejection(error: DecodeError, fallback: Reason, sequence: Option<u64>) -> Rejection {
     let reason = match error {
-        DecodeError::UnknownColourEncoding(_) | DecodeError::UnknownDepthEncoding(_) | DecodeError::UnknownPixelFormat(_) => {
-            Reason::UnknownEncoding
-        }
+        DecodeError::UnknownColourEncoding(_)
+        | DecodeError::UnknownDepthEncoding(_)
+        | DecodeError::UnknownPixelFormat(_) => Reason::UnknownEncoding,
         DecodeError::SizeMismatch { .. } | DecodeError::WrongLength { .. } => Reason::SizeMismatch,
-        DecodeError::Rvl(vsgraphs_proto::rvl::RvlError::SizeMismatch { .. }) => Reason::SizeMismatch,
+        DecodeError::Rvl(vsgraphs_proto::rvl::RvlError::SizeMismatch { .. }) => {
+            Reason::SizeMismatch
+        }
         _ => fallback,
     };
     reject(reason, error.to_string(), sequence)
@@ -243,7 +301,11 @@ pub fn api_pose(estimate: &MarkerPoseEstimate) -> MarkerPose {
         translation_m: [t.x, t.y, t.z],
         rotation_xyzw: [q.x, q.y, q.z, q.w],
         reprojection_error_px: estimate.reprojection_error_px,
-        distance_source: if estimate.used_depth { DistanceSource::Depth } else { DistanceSource::Corners },
+        distance_source: if estimate.used_depth {
+            DistanceSource::Depth
+        } else {
+            DistanceSource::Corners
+        },
         depth_distance_m: estimate.depth_distance_m,
         corners_distance_m: estimate.corners_distance_m,
     }

@@ -15,7 +15,9 @@ const TIMING_WINDOW: Duration = Duration::from_secs(5);
 
 /// Server time in ns since the Unix epoch.
 pub fn now_ns() -> u64 {
-    SystemTime::now().duration_since(UNIX_EPOCH).map_or(0, |d| d.as_nanos() as u64)
+    SystemTime::now()
+        .duration_since(UNIX_EPOCH)
+        .map_or(0, |d| d.as_nanos() as u64)
 }
 
 /// One robot.
@@ -55,7 +57,9 @@ impl RobotEntry {
 
     fn state(&self) -> std::sync::MutexGuard<'_, RobotState> {
         // A panic elsewhere must not take the robot's counters down with it.
-        self.state.lock().unwrap_or_else(|poisoned| poisoned.into_inner())
+        self.state
+            .lock()
+            .unwrap_or_else(|poisoned| poisoned.into_inner())
     }
 
     /// A frame arrived from the network.
@@ -81,7 +85,10 @@ impl RobotEntry {
 
     pub fn record_rejection(&self, rejection: api::Rejection) {
         let mut state = self.state();
-        *state.rejected_by_reason.entry(rejection.reason.clone()).or_default() += 1;
+        *state
+            .rejected_by_reason
+            .entry(rejection.reason.clone())
+            .or_default() += 1;
         state.last_rejection = Some(rejection);
     }
 
@@ -92,8 +99,14 @@ impl RobotEntry {
             let mut state = self.state();
             state.processed += 1;
             let now = Instant::now();
-            state.recent.push_back((now, latency_ms, processing.as_secs_f64() * 1e3));
-            while state.recent.front().is_some_and(|(t, ..)| now.duration_since(*t) > TIMING_WINDOW) {
+            state
+                .recent
+                .push_back((now, latency_ms, processing.as_secs_f64() * 1e3));
+            while state
+                .recent
+                .front()
+                .is_some_and(|(t, ..)| now.duration_since(*t) > TIMING_WINDOW)
+            {
                 state.recent.pop_front();
             }
         }
@@ -107,7 +120,10 @@ impl RobotEntry {
     }
 
     pub fn latest_detections(&self) -> Option<Arc<FrameDetections>> {
-        self.latest.lock().unwrap_or_else(|p| p.into_inner()).clone()
+        self.latest
+            .lock()
+            .unwrap_or_else(|p| p.into_inner())
+            .clone()
     }
 
     /// A consistent view of the robot for the API.
@@ -115,9 +131,14 @@ impl RobotEntry {
         let state = self.state();
         let rejected = state.rejected_by_reason.values().sum();
         let now = Instant::now();
-        let recent: Vec<_> = state.recent.iter().filter(|(t, ..)| now.duration_since(*t) <= TIMING_WINDOW).collect();
+        let recent: Vec<_> = state
+            .recent
+            .iter()
+            .filter(|(t, ..)| now.duration_since(*t) <= TIMING_WINDOW)
+            .collect();
         let mean = |f: fn(&(Instant, f64, f64)) -> f64| {
-            (!recent.is_empty()).then(|| recent.iter().map(|r| f(r)).sum::<f64>() / recent.len() as f64)
+            (!recent.is_empty())
+                .then(|| recent.iter().map(|r| f(r)).sum::<f64>() / recent.len() as f64)
         };
         let rate_hz = match (recent.first(), recent.last()) {
             (Some(first), Some(last)) if recent.len() > 1 => {
@@ -182,7 +203,11 @@ impl Registry {
     }
 
     pub fn get(&self, robot_id: &str) -> Option<Arc<RobotEntry>> {
-        self.robots.read().unwrap_or_else(|p| p.into_inner()).get(robot_id).cloned()
+        self.robots
+            .read()
+            .unwrap_or_else(|p| p.into_inner())
+            .get(robot_id)
+            .cloned()
     }
 
     /// The robot's entry, created if new; `Ok((entry, true))` when it was just created.
@@ -207,7 +232,13 @@ impl Registry {
 
     /// Every robot, sorted by id.
     pub fn all(&self) -> Vec<Arc<RobotEntry>> {
-        let mut all: Vec<_> = self.robots.read().unwrap_or_else(|p| p.into_inner()).values().cloned().collect();
+        let mut all: Vec<_> = self
+            .robots
+            .read()
+            .unwrap_or_else(|p| p.into_inner())
+            .values()
+            .cloned()
+            .collect();
         all.sort_by(|a, b| a.robot_id.cmp(&b.robot_id));
         all
     }
@@ -232,7 +263,14 @@ mod tests {
         assert!(!registry.get_or_insert("a").unwrap().1);
         assert!(registry.get_or_insert("b").is_ok());
         assert_eq!(registry.get_or_insert("c").err(), Some(RegisterError::Full));
-        assert_eq!(registry.all().iter().map(|r| r.robot_id.as_str()).collect::<Vec<_>>(), ["a", "b"]);
+        assert_eq!(
+            registry
+                .all()
+                .iter()
+                .map(|r| r.robot_id.as_str())
+                .collect::<Vec<_>>(),
+            ["a", "b"]
+        );
     }
 
     #[test]
@@ -243,14 +281,41 @@ mod tests {
             robot.record_arrival();
         }
         robot.record_dropped();
-        robot.record_rejection(api::Rejection { reason: "colour_decode".into(), message: "m".into(), sequence: Some(1), at_ns: 1 });
-        robot.record_rejection(api::Rejection { reason: "colour_decode".into(), message: "m".into(), sequence: Some(2), at_ns: 2 });
-        let detections = FrameDetections { robot_id: "a".into(), session_id: "s".into(), sequence: 3, timestamp_ns: now_ns(), image_width: 4, image_height: 3, markers: vec![] };
+        robot.record_rejection(api::Rejection {
+            reason: "colour_decode".into(),
+            message: "m".into(),
+            sequence: Some(1),
+            at_ns: 1,
+        });
+        robot.record_rejection(api::Rejection {
+            reason: "colour_decode".into(),
+            message: "m".into(),
+            sequence: Some(2),
+            at_ns: 2,
+        });
+        let detections = FrameDetections {
+            robot_id: "a".into(),
+            session_id: "s".into(),
+            sequence: 3,
+            timestamp_ns: now_ns(),
+            image_width: 4,
+            image_height: 3,
+            markers: vec![],
+        };
         robot.record_processed(detections.clone(), Duration::from_millis(3));
-        robot.record_processed(FrameDetections { sequence: 4, ..detections }, Duration::from_millis(5));
+        robot.record_processed(
+            FrameDetections {
+                sequence: 4,
+                ..detections
+            },
+            Duration::from_millis(5),
+        );
         let status = robot.status();
         assert_eq!(status.frames.received, 5);
-        assert_eq!(status.frames.processed + status.frames.dropped + status.frames.rejected, 5);
+        assert_eq!(
+            status.frames.processed + status.frames.dropped + status.frames.rejected,
+            5
+        );
         assert_eq!(status.frames.rejected_by_reason["colour_decode"], 2);
         assert_eq!(status.last_rejection.unwrap().sequence, Some(2));
         assert_eq!(status.timing.processing_ms_mean, Some(4.0));

@@ -40,11 +40,16 @@ pub struct MarkerDetector {
 }
 
 impl MarkerDetector {
-    pub fn new(dictionary: MarkerDictionary, refinement: CornerRefinement) -> Result<Self, CvError> {
+    pub fn new(
+        dictionary: MarkerDictionary,
+        refinement: CornerRefinement,
+    ) -> Result<Self, CvError> {
         let mut parameters = DetectorParameters::create()?;
         let method = match refinement {
             // Sub-pixel refinement is ours (see `refine_subpixel`), on the unrefined corners.
-            CornerRefinement::None | CornerRefinement::Subpixel => opencv::aruco::CORNER_REFINE_NONE,
+            CornerRefinement::None | CornerRefinement::Subpixel => {
+                opencv::aruco::CORNER_REFINE_NONE
+            }
             CornerRefinement::Contour => opencv::aruco::CORNER_REFINE_CONTOUR,
         };
         parameters.set_corner_refinement_method(method);
@@ -105,17 +110,23 @@ const MAX_REFINEMENT_MOVE: f32 = 1.5;
 /// [`MAX_REFINEMENT_MOVE`] is left where the contour put it.
 fn refine_subpixel(image: &Mat, detections: &mut [Detection]) -> Result<(), CvError> {
     let all: Vec<[f32; 2]> = detections.iter().flat_map(|d| d.corners).collect();
-    let distance = |a: [f32; 2], b: [f32; 2]| ((a[0] - b[0]).powi(2) + (a[1] - b[1]).powi(2)).sqrt();
+    let distance =
+        |a: [f32; 2], b: [f32; 2]| ((a[0] - b[0]).powi(2) + (a[1] - b[1]).powi(2)).sqrt();
     for (index, detection) in detections.iter_mut().enumerate() {
         let c = detection.corners;
-        let shortest = (0..4).map(|i| distance(c[i], c[(i + 1) % 4])).fold(f32::MAX, f32::min);
+        let shortest = (0..4)
+            .map(|i| distance(c[i], c[(i + 1) % 4]))
+            .fold(f32::MAX, f32::min);
         let nearest_other = all
             .iter()
             .enumerate()
             .filter(|(j, _)| j / 4 != index)
             .flat_map(|(_, p)| c.iter().map(move |q| distance(*p, *q)))
             .fold(f32::MAX, f32::min);
-        let half = (shortest * HALF_WINDOW_PER_SIDE).min(nearest_other * 0.45).min(MAX_HALF_WINDOW).floor();
+        let half = (shortest * HALF_WINDOW_PER_SIDE)
+            .min(nearest_other * 0.45)
+            .min(MAX_HALF_WINDOW)
+            .floor();
         if half < 2.0 {
             continue;
         }

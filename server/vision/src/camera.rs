@@ -54,7 +54,15 @@ impl PinholeCamera {
         {
             return Err(CameraError::BadDistortion(distortion));
         }
-        Ok(Self { width, height, fx, fy, cx, cy, distortion })
+        Ok(Self {
+            width,
+            height,
+            fx,
+            fy,
+            cx,
+            cy,
+            distortion,
+        })
     }
 
     /// True when every distortion coefficient is zero (or none is given).
@@ -72,7 +80,11 @@ impl PinholeCamera {
 
     /// The ray through an undistorted pixel, scaled so that its z is 1.
     pub fn ray(&self, pixel: Point2<f64>) -> Vector3<f64> {
-        Vector3::new((pixel.x - self.cx) / self.fx, (pixel.y - self.cy) / self.fy, 1.0)
+        Vector3::new(
+            (pixel.x - self.cx) / self.fx,
+            (pixel.y - self.cy) / self.fy,
+            1.0,
+        )
     }
 }
 
@@ -96,7 +108,10 @@ mod tests {
             PinholeCamera::new(640, 480, [500.0, 500.0, 700.0, 240.0], vec![]),
             Err(CameraError::BadPrincipalPoint(..))
         ));
-        assert_eq!(PinholeCamera::new(0, 480, ok, vec![]), Err(CameraError::BadSize(0, 480)));
+        assert_eq!(
+            PinholeCamera::new(0, 480, ok, vec![]),
+            Err(CameraError::BadSize(0, 480))
+        );
         assert!(matches!(
             PinholeCamera::new(640, 480, ok, vec![0.1, 0.2, 0.0]),
             Err(CameraError::BadDistortion(_))

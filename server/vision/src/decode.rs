@@ -27,9 +27,21 @@ pub enum DecodeError {
     #[error("the {0} image could not be decoded")]
     Undecodable(&'static str),
     #[error("{what} is {got_width}x{got_height}, but the camera is {width}x{height}")]
-    SizeMismatch { what: &'static str, got_width: u32, got_height: u32, width: u32, height: u32 },
+    SizeMismatch {
+        what: &'static str,
+        got_width: u32,
+        got_height: u32,
+        width: u32,
+        height: u32,
+    },
     #[error("{what} has {got} bytes; {expected} expected for {width}x{height}")]
-    WrongLength { what: &'static str, got: usize, expected: usize, width: u32, height: u32 },
+    WrongLength {
+        what: &'static str,
+        got: usize,
+        expected: usize,
+        width: u32,
+        height: u32,
+    },
     #[error("depth PNG must be 16-bit single-channel")]
     NotDepth,
     #[error("RVL depth: {0}")]
@@ -51,7 +63,13 @@ const PNG_SIGNATURE: [u8; 8] = [0x89, b'P', b'N', b'G', 0x0D, 0x0A, 0x1A, 0x0A];
 fn check_size(what: &'static str, image: &Mat, width: u32, height: u32) -> Result<(), DecodeError> {
     let (got_width, got_height) = (image.cols() as u32, image.rows() as u32);
     if (got_width, got_height) != (width, height) {
-        return Err(DecodeError::SizeMismatch { what, got_width, got_height, width, height });
+        return Err(DecodeError::SizeMismatch {
+            what,
+            got_width,
+            got_height,
+            width,
+            height,
+        });
     }
     Ok(())
 }
@@ -85,7 +103,13 @@ pub fn colour_to_grey(colour: &ColourImage, width: u32, height: u32) -> Result<M
             };
             let expected = width as usize * height as usize * channels;
             if data.len() != expected {
-                return Err(DecodeError::WrongLength { what: "raw colour", got: data.len(), expected, width, height });
+                return Err(DecodeError::WrongLength {
+                    what: "raw colour",
+                    got: data.len(),
+                    expected,
+                    width,
+                    height,
+                });
             }
             let flat = Mat::from_slice(data)?;
             let image = flat.reshape(channels as i32, height as i32)?;
@@ -119,9 +143,17 @@ pub fn depth(
         Ok(DepthEncoding::Rvl) => rvl::decode(data, width, height)?,
         Ok(DepthEncoding::Raw16) => {
             if data.len() != pixels * 2 {
-                return Err(DecodeError::WrongLength { what: "raw depth", got: data.len(), expected: pixels * 2, width, height });
+                return Err(DecodeError::WrongLength {
+                    what: "raw depth",
+                    got: data.len(),
+                    expected: pixels * 2,
+                    width,
+                    height,
+                });
             }
-            data.chunks_exact(2).map(|b| u16::from_le_bytes([b[0], b[1]])).collect()
+            data.chunks_exact(2)
+                .map(|b| u16::from_le_bytes([b[0], b[1]]))
+                .collect()
         }
         Ok(DepthEncoding::Png16) => {
             if !data.starts_with(&PNG_SIGNATURE) {
@@ -139,5 +171,10 @@ pub fn depth(
         }
         _ => return Err(DecodeError::UnknownDepthEncoding(encoding)),
     };
-    Ok(DepthImage { width, height, data: values, depth_scale })
+    Ok(DepthImage {
+        width,
+        height,
+        data: values,
+        depth_scale,
+    })
 }

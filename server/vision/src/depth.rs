@@ -22,7 +22,9 @@ impl DepthImage {
         if x >= self.width || y >= self.height {
             return None;
         }
-        let raw = *self.data.get(y as usize * self.width as usize + x as usize)?;
+        let raw = *self
+            .data
+            .get(y as usize * self.width as usize + x as usize)?;
         (raw != 0).then(|| f64::from(raw) / self.depth_scale)
     }
 }
@@ -58,7 +60,9 @@ pub fn fit_plane_in_quad(
     corners: &[Point2<f64>; 4],
     rays: impl Fn(&[Point2<f64>]) -> Vec<Vector3<f64>>,
 ) -> Option<DepthPlane> {
-    let centre = corners.iter().fold(Point2::origin(), |acc, c| acc + c.coords / 4.0);
+    let centre = corners
+        .iter()
+        .fold(Point2::origin(), |acc, c| acc + c.coords / 4.0);
     let inner: Vec<Point2<f64>> = corners
         .iter()
         .map(|c| centre + (c - centre) * INNER_FRACTION)
@@ -183,7 +187,12 @@ mod tests {
                 data.push((z * 1000.0).round() as u16);
             }
         }
-        DepthImage { width: camera.width, height: camera.height, data, depth_scale: 1000.0 }
+        DepthImage {
+            width: camera.width,
+            height: camera.height,
+            data,
+            depth_scale: 1000.0,
+        }
     }
 
     #[test]
@@ -191,8 +200,8 @@ mod tests {
         let camera = camera();
         let normal = Vector3::new(0.3, -0.2, 1.0).normalize();
         let depth = plane_depth(&camera, normal, 1.5);
-        let quad = [(10.0, 8.0), (50.0, 10.0), (52.0, 40.0), (12.0, 38.0)]
-            .map(|(x, y)| Point2::new(x, y));
+        let quad =
+            [(10.0, 8.0), (50.0, 10.0), (52.0, 40.0), (12.0, 38.0)].map(|(x, y)| Point2::new(x, y));
         let plane = fit_plane_in_quad(&depth, &quad, rays(&camera)).unwrap();
         assert!(plane.normal.angle(&normal) < 0.01, "{}", plane.normal);
         assert!((plane.offset - 1.5).abs() < 0.002, "{}", plane.offset);
@@ -206,11 +215,16 @@ mod tests {
         let camera = camera();
         let mut depth = plane_depth(&camera, Vector3::z(), 2.0);
         depth.data.iter_mut().for_each(|d| *d = 0);
-        let quad = [(10.0, 8.0), (50.0, 10.0), (52.0, 40.0), (12.0, 38.0)]
-            .map(|(x, y)| Point2::new(x, y));
+        let quad =
+            [(10.0, 8.0), (50.0, 10.0), (52.0, 40.0), (12.0, 38.0)].map(|(x, y)| Point2::new(x, y));
         assert_eq!(fit_plane_in_quad(&depth, &quad, rays(&camera)), None);
-        let off_image = [(100.0, 100.0), (120.0, 100.0), (120.0, 120.0), (100.0, 120.0)]
-            .map(|(x, y)| Point2::new(x, y));
+        let off_image = [
+            (100.0, 100.0),
+            (120.0, 100.0),
+            (120.0, 120.0),
+            (100.0, 120.0),
+        ]
+        .map(|(x, y)| Point2::new(x, y));
         assert_eq!(fit_plane_in_quad(&depth, &off_image, rays(&camera)), None);
     }
 
@@ -222,8 +236,8 @@ mod tests {
         for y in 0..camera.height {
             depth.data[(y * camera.width + 30) as usize] = 3000;
         }
-        let quad = [(10.0, 8.0), (50.0, 8.0), (50.0, 40.0), (10.0, 40.0)]
-            .map(|(x, y)| Point2::new(x, y));
+        let quad =
+            [(10.0, 8.0), (50.0, 8.0), (50.0, 40.0), (10.0, 40.0)].map(|(x, y)| Point2::new(x, y));
         let plane = fit_plane_in_quad(&depth, &quad, rays(&camera)).unwrap();
         assert!((plane.offset - 1.0).abs() < 0.002, "{}", plane.offset);
     }

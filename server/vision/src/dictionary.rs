@@ -11,12 +11,27 @@ use thiserror::Error;
 
 /// OpenCV's predefined dictionaries, by the names of its `PREDEFINED_DICTIONARY_NAME` enum.
 pub const PREDEFINED: [&str; 21] = [
-    "DICT_4X4_50", "DICT_4X4_100", "DICT_4X4_250", "DICT_4X4_1000",
-    "DICT_5X5_50", "DICT_5X5_100", "DICT_5X5_250", "DICT_5X5_1000",
-    "DICT_6X6_50", "DICT_6X6_100", "DICT_6X6_250", "DICT_6X6_1000",
-    "DICT_7X7_50", "DICT_7X7_100", "DICT_7X7_250", "DICT_7X7_1000",
+    "DICT_4X4_50",
+    "DICT_4X4_100",
+    "DICT_4X4_250",
+    "DICT_4X4_1000",
+    "DICT_5X5_50",
+    "DICT_5X5_100",
+    "DICT_5X5_250",
+    "DICT_5X5_1000",
+    "DICT_6X6_50",
+    "DICT_6X6_100",
+    "DICT_6X6_250",
+    "DICT_6X6_1000",
+    "DICT_7X7_50",
+    "DICT_7X7_100",
+    "DICT_7X7_250",
+    "DICT_7X7_1000",
     "DICT_ARUCO_ORIGINAL",
-    "DICT_APRILTAG_16h5", "DICT_APRILTAG_25h9", "DICT_APRILTAG_36h10", "DICT_APRILTAG_36h11",
+    "DICT_APRILTAG_16h5",
+    "DICT_APRILTAG_25h9",
+    "DICT_APRILTAG_36h10",
+    "DICT_APRILTAG_36h11",
 ];
 
 #[derive(Debug, Error)]
@@ -24,9 +39,16 @@ pub enum DictionaryError {
     #[error("unknown dictionary {0:?}; OpenCV's predefined ones are {list}", list = PREDEFINED.join(", "))]
     UnknownName(String),
     #[error("cannot read {path}: {source}")]
-    Io { path: PathBuf, source: std::io::Error },
+    Io {
+        path: PathBuf,
+        source: std::io::Error,
+    },
     #[error("{path}:{line}: {message}")]
-    Parse { path: PathBuf, line: usize, message: String },
+    Parse {
+        path: PathBuf,
+        line: usize,
+        message: String,
+    },
     #[error("{path}: {message}")]
     Invalid { path: PathBuf, message: String },
     #[error(transparent)]
@@ -47,12 +69,19 @@ pub struct MarkerDictionary {
 enum Source {
     Predefined(i32),
     /// Bit codes (row-major, 1 = white) and the bits the decoder may correct.
-    Custom { codes: Vec<Vec<u8>>, max_correction: i32 },
+    Custom {
+        codes: Vec<Vec<u8>>,
+        max_correction: i32,
+    },
 }
 
 impl std::fmt::Debug for MarkerDictionary {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        write!(f, "{} ({} markers of {}x{} bits)", self.name, self.markers, self.marker_size, self.marker_size)
+        write!(
+            f,
+            "{} ({} markers of {}x{} bits)",
+            self.name, self.markers, self.marker_size, self.marker_size
+        )
     }
 }
 
@@ -60,7 +89,11 @@ impl MarkerDictionary {
     /// A predefined dictionary, e.g. "DICT_6X6_250" (case-insensitive; "DICT_" may be left out).
     pub fn predefined(name: &str) -> Result<Self, DictionaryError> {
         let wanted = name.trim().to_ascii_uppercase();
-        let wanted = if wanted.starts_with("DICT_") { wanted } else { format!("DICT_{wanted}") };
+        let wanted = if wanted.starts_with("DICT_") {
+            wanted
+        } else {
+            format!("DICT_{wanted}")
+        };
         let index = PREDEFINED
             .iter()
             .position(|n| n.to_ascii_uppercase() == wanted)
@@ -79,22 +112,31 @@ impl MarkerDictionary {
     pub fn opencv(&self) -> Result<Ptr<Dictionary>, CvError> {
         match &self.source {
             Source::Predefined(index) => Ok(opencv::aruco::get_predefined_dictionary_i32(*index)?),
-            Source::Custom { codes, max_correction } => {
+            Source::Custom {
+                codes,
+                max_correction,
+            } => {
                 let size = self.marker_size;
                 let mut bytes_list = Mat::default();
                 for code in codes {
                     let bits = Mat::new_rows_cols_with_data(size, size, code.as_slice())?;
                     bytes_list.push_back(&Dictionary::get_byte_list_from_bits(&bits)?)?;
                 }
-                Ok(Ptr::new(Dictionary::new(&bytes_list, size, *max_correction)?))
+                Ok(Ptr::new(Dictionary::new(
+                    &bytes_list,
+                    size,
+                    *max_correction,
+                )?))
             }
         }
     }
 
     /// Reads a custom dictionary from an OpenCV FileStorage YAML file.
     pub fn from_yaml_file(path: &Path) -> Result<Self, DictionaryError> {
-        let text = std::fs::read_to_string(path)
-            .map_err(|source| DictionaryError::Io { path: path.to_owned(), source })?;
+        let text = std::fs::read_to_string(path).map_err(|source| DictionaryError::Io {
+            path: path.to_owned(),
+            source,
+        })?;
         Self::from_yaml(&text, path)
     }
 
@@ -105,7 +147,11 @@ impl MarkerDictionary {
         let mut max_correction: Option<i32> = None;
         let mut bits: Vec<Option<String>> = Vec::new();
         for (index, line) in text.lines().enumerate() {
-            let parse = |message: String| DictionaryError::Parse { path: path.to_owned(), line: index + 1, message };
+            let parse = |message: String| DictionaryError::Parse {
+                path: path.to_owned(),
+                line: index + 1,
+                message,
+            };
             let line = line.split('#').next().unwrap_or("").trim();
             if line.is_empty() || line.starts_with('%') || line == "---" {
                 continue;
@@ -114,7 +160,10 @@ impl MarkerDictionary {
                 return Err(parse(format!("expected `key: value`, found {line:?}")));
             };
             let (key, value) = (key.trim(), value.trim().trim_matches('"'));
-            let number = |v: &str| v.parse::<usize>().map_err(|_| parse(format!("{key}: {v:?} is not a whole number")));
+            let number = |v: &str| {
+                v.parse::<usize>()
+                    .map_err(|_| parse(format!("{key}: {v:?} is not a whole number")))
+            };
             match key {
                 "nmarkers" => markers = Some(number(value)?),
                 "markersize" => size = Some(number(value)?),
@@ -136,7 +185,10 @@ impl MarkerDictionary {
                 }
             }
         }
-        let invalid = |message: String| DictionaryError::Invalid { path: path.to_owned(), message };
+        let invalid = |message: String| DictionaryError::Invalid {
+            path: path.to_owned(),
+            message,
+        };
         let size = size.ok_or_else(|| invalid("markersize is missing".into()))?;
         if !(2..=16).contains(&size) {
             return Err(invalid(format!("markersize {size} is outside 2..=16")));
@@ -154,18 +206,27 @@ impl MarkerDictionary {
             .map(|(id, b)| {
                 let b = b.expect("checked above");
                 if b.len() != size * size || !b.bytes().all(|c| c == b'0' || c == b'1') {
-                    return Err(invalid(format!("marker_{id} needs {} bits of 0 and 1, found {b:?}", size * size)));
+                    return Err(invalid(format!(
+                        "marker_{id} needs {} bits of 0 and 1, found {b:?}",
+                        size * size
+                    )));
                 }
                 Ok(b.bytes().map(|c| c - b'0').collect())
             })
             .collect::<Result<_, _>>()?;
-        let max_correction = max_correction.unwrap_or_else(|| (min_distance(&codes, size) as i32 - 1).max(0) / 2);
-        let name = path.file_name().map_or_else(|| "custom".into(), |n| n.to_string_lossy().into_owned());
+        let max_correction =
+            max_correction.unwrap_or_else(|| (min_distance(&codes, size) as i32 - 1).max(0) / 2);
+        let name = path
+            .file_name()
+            .map_or_else(|| "custom".into(), |n| n.to_string_lossy().into_owned());
         let dictionary = Self {
             name,
             marker_size: size as i32,
             markers: codes.len() as i32,
-            source: Source::Custom { codes, max_correction },
+            source: Source::Custom {
+                codes,
+                max_correction,
+            },
         };
         dictionary.opencv()?;
         Ok(dictionary)
@@ -204,7 +265,11 @@ fn min_distance(codes: &[Vec<u8>], size: usize) -> usize {
             rotated = rotate(&rotated);
         }
     }
-    if best == usize::MAX { size * size } else { best }
+    if best == usize::MAX {
+        size * size
+    } else {
+        best
+    }
 }
 
 #[cfg(test)]
@@ -213,18 +278,34 @@ mod tests {
 
     #[test]
     fn predefined_names_are_forgiving_and_checked() {
-        assert_eq!(MarkerDictionary::predefined("DICT_6X6_250").unwrap().markers, 250);
+        assert_eq!(
+            MarkerDictionary::predefined("DICT_6X6_250")
+                .unwrap()
+                .markers,
+            250
+        );
         let d = MarkerDictionary::predefined("4x4_50").unwrap();
         assert_eq!((d.name.as_str(), d.marker_size), ("DICT_4X4_50", 4));
-        assert_eq!(MarkerDictionary::predefined("apriltag_36h11").unwrap().marker_size, 6);
-        let error = MarkerDictionary::predefined("DICT_9X9").unwrap_err().to_string();
+        assert_eq!(
+            MarkerDictionary::predefined("apriltag_36h11")
+                .unwrap()
+                .marker_size,
+            6
+        );
+        let error = MarkerDictionary::predefined("DICT_9X9")
+            .unwrap_err()
+            .to_string();
         assert!(error.contains("DICT_5X5_100"), "{error}");
     }
 
     #[test]
     fn broken_yaml_is_explained() {
         let path = Path::new("d.yml");
-        let err = |t: &str| MarkerDictionary::from_yaml(t, path).unwrap_err().to_string();
+        let err = |t: &str| {
+            MarkerDictionary::from_yaml(t, path)
+                .unwrap_err()
+                .to_string()
+        };
         assert!(err("nmarkers: 1\nmarkersize: 2\nmarker_0: \"101\"\n").contains("needs 4 bits"));
         assert!(err("nmarkers: 2\nmarkersize: 2\nmarker_0: \"1010\"\n").contains("nmarkers is 2"));
         assert!(err("nmarkers: x\n").contains(":1:"));

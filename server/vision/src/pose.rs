@@ -55,7 +55,13 @@ impl PoseEstimator {
             Point3d::new(h, -h, 0.0),
             Point3d::new(-h, -h, 0.0),
         ]);
-        Ok(Self { camera, side_m, camera_matrix, distortion, object_points })
+        Ok(Self {
+            camera,
+            side_m,
+            camera_matrix,
+            distortion,
+            object_points,
+        })
     }
 
     pub fn camera(&self) -> &PinholeCamera {
@@ -111,9 +117,15 @@ impl PoseEstimator {
         calib3d::rodrigues_def(&rvec, &mut rotation)?;
         let r = |i, j| -> Result<f64, CvError> { Ok(*rotation.at_2d::<f64>(i, j)?) };
         let matrix = Matrix3::new(
-            r(0, 0)?, r(0, 1)?, r(0, 2)?,
-            r(1, 0)?, r(1, 1)?, r(1, 2)?,
-            r(2, 0)?, r(2, 1)?, r(2, 2)?,
+            r(0, 0)?,
+            r(0, 1)?,
+            r(0, 2)?,
+            r(1, 0)?,
+            r(1, 1)?,
+            r(1, 2)?,
+            r(2, 0)?,
+            r(2, 1)?,
+            r(2, 2)?,
         );
         let t = |i| -> Result<f64, CvError> { Ok(*tvec.at::<f64>(i)?) };
         let mut translation = Vector3::new(t(0)?, t(1)?, t(2)?);
@@ -122,10 +134,17 @@ impl PoseEstimator {
         let mut depth_distance_m = None;
         let mut used_depth = false;
         if let Some((depth, agreement)) = depth {
-            let corners = detection.corners.map(|c| Point2::new(f64::from(c[0]), f64::from(c[1])));
-            let plane = fit_plane_in_quad(depth, &corners, |pixels| self.rays(pixels).unwrap_or_default());
+            let corners = detection
+                .corners
+                .map(|c| Point2::new(f64::from(c[0]), f64::from(c[1])));
+            let plane = fit_plane_in_quad(depth, &corners, |pixels| {
+                self.rays(pixels).unwrap_or_default()
+            });
             let direction = translation / corners_distance_m;
-            if let Some(distance) = plane.and_then(|p| p.ray_parameter(&direction)).filter(|d| *d > 0.0) {
+            if let Some(distance) = plane
+                .and_then(|p| p.ray_parameter(&direction))
+                .filter(|d| *d > 0.0)
+            {
                 depth_distance_m = Some(distance);
                 if (distance - corners_distance_m).abs() <= agreement * corners_distance_m {
                     translation = direction * distance;
@@ -150,7 +169,15 @@ impl PoseEstimator {
         }
         let source: Vector<Point2d> = pixels.iter().map(|p| Point2d::new(p.x, p.y)).collect();
         let mut normalised = Vector::<Point2d>::new();
-        calib3d::undistort_points_def(&source, &mut normalised, &self.camera_matrix, &self.distortion)?;
-        Ok(normalised.iter().map(|p| Vector3::new(p.x, p.y, 1.0)).collect())
+        calib3d::undistort_points_def(
+            &source,
+            &mut normalised,
+            &self.camera_matrix,
+            &self.distortion,
+        )?;
+        Ok(normalised
+            .iter()
+            .map(|p| Vector3::new(p.x, p.y, 1.0))
+            .collect())
     }
 }

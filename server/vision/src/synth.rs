@@ -9,7 +9,10 @@ use crate::camera::PinholeCamera;
 use crate::dictionary::MarkerDictionary;
 use crate::CvError;
 use nalgebra::{Isometry3, Point2, Point3, Vector3};
-use opencv::core::{copy_make_border, Mat, Point2f, Scalar, Size, Vector, BORDER_CONSTANT, BORDER_TRANSPARENT, CV_8UC1};
+use opencv::core::{
+    copy_make_border, Mat, Point2f, Scalar, Size, Vector, BORDER_CONSTANT, BORDER_TRANSPARENT,
+    CV_8UC1,
+};
 use opencv::imgproc;
 use opencv::prelude::*;
 
@@ -93,7 +96,8 @@ pub fn render(
             let supersampled = |v: f64| (v * f64::from(s) + f64::from(s - 1) / 2.0) as f32;
             target.push(Point2f::new(supersampled(pixel.x), supersampled(pixel.y)));
         }
-        let homography = imgproc::get_perspective_transform(&source, &target, opencv::core::DECOMP_LU)?;
+        let homography =
+            imgproc::get_perspective_transform(&source, &target, opencv::core::DECOMP_LU)?;
         let size = canvas.size()?;
         imgproc::warp_perspective(
             &padded,
@@ -106,8 +110,18 @@ pub fn render(
         )?;
     }
     let mut grey = Mat::default();
-    imgproc::resize(&canvas, &mut grey, Size::new(width, height), 0.0, 0.0, imgproc::INTER_AREA)?;
-    Ok(RenderedFrame { grey, depth_mm: depth_mm(camera, markers, background_m) })
+    imgproc::resize(
+        &canvas,
+        &mut grey,
+        Size::new(width, height),
+        0.0,
+        0.0,
+        imgproc::INTER_AREA,
+    )?;
+    Ok(RenderedFrame {
+        grey,
+        depth_mm: depth_mm(camera, markers, background_m),
+    })
 }
 
 /// Exact depth: the nearest marker square (with its quiet zone) under each pixel, else the wall.
@@ -176,19 +190,39 @@ mod tests {
         let dictionary = MarkerDictionary::predefined("DICT_4X4_100").unwrap();
         let truth = Isometry3::from_parts(
             Translation3::new(0.05, -0.03, 1.0),
-            UnitQuaternion::from_euler_angles(0.35, -0.25, 0.1) * UnitQuaternion::from_euler_angles(std::f64::consts::PI, 0.0, 0.0),
+            UnitQuaternion::from_euler_angles(0.35, -0.25, 0.1)
+                * UnitQuaternion::from_euler_angles(std::f64::consts::PI, 0.0, 0.0),
         );
-        let marker = PlacedMarker { id: 7, side_m: 0.16, camera_from_marker: truth };
+        let marker = PlacedMarker {
+            id: 7,
+            side_m: 0.16,
+            camera_from_marker: truth,
+        };
         let frame = render(&camera, &dictionary, &[marker], 3.0).unwrap();
         let mut detector = MarkerDetector::new(dictionary, CornerRefinement::Subpixel).unwrap();
         let detections = detector.detect(&frame.grey).unwrap();
         assert_eq!(detections.iter().map(|d| d.id).collect::<Vec<_>>(), [7]);
-        let depth = crate::depth::DepthImage { width: 640, height: 480, data: frame.depth_mm, depth_scale: 1000.0 };
+        let depth = crate::depth::DepthImage {
+            width: 640,
+            height: 480,
+            data: frame.depth_mm,
+            depth_scale: 1000.0,
+        };
         let estimator = PoseEstimator::new(camera, 0.16).unwrap();
-        let estimate = estimator.estimate(&detections[0], Some((&depth, 0.15))).unwrap();
+        let estimate = estimator
+            .estimate(&detections[0], Some((&depth, 0.15)))
+            .unwrap();
         let error = truth.inverse() * estimate.camera_from_marker;
-        assert!(error.translation.vector.norm() < 0.01, "{}", error.translation.vector);
-        assert!(error.rotation.angle() < 1f64.to_radians(), "{}", error.rotation.angle().to_degrees());
+        assert!(
+            error.translation.vector.norm() < 0.01,
+            "{}",
+            error.translation.vector
+        );
+        assert!(
+            error.rotation.angle() < 1f64.to_radians(),
+            "{}",
+            error.rotation.angle().to_degrees()
+        );
         assert!(estimate.used_depth);
     }
 }

@@ -46,8 +46,14 @@ impl Workers {
                 .name(format!("robot-{robot_id}"))
                 .spawn(move || run_worker(worker_entry, &config));
             match spawned {
-                Ok(handle) => self.handles.lock().unwrap_or_else(|p| p.into_inner()).push(handle),
-                Err(e) => tracing::error!(robot_id, error = %e, "cannot start the robot's worker thread"),
+                Ok(handle) => self
+                    .handles
+                    .lock()
+                    .unwrap_or_else(|p| p.into_inner())
+                    .push(handle),
+                Err(e) => {
+                    tracing::error!(robot_id, error = %e, "cannot start the robot's worker thread")
+                }
             }
         }
         Some(entry)
@@ -56,15 +62,27 @@ impl Workers {
 
 impl Ingest {
     /// Subscribes to every robot's frames and liveliness on `session`.
-    pub async fn start(session: &zenoh::Session, registry: Arc<Registry>, config: Arc<Config>) -> zenoh::Result<Self> {
-        let workers = Arc::new(Workers { registry: registry.clone(), config, handles: Mutex::new(Vec::new()) });
+    pub async fn start(
+        session: &zenoh::Session,
+        registry: Arc<Registry>,
+        config: Arc<Config>,
+    ) -> zenoh::Result<Self> {
+        let workers = Arc::new(Workers {
+            registry: registry.clone(),
+            config,
+            handles: Mutex::new(Vec::new()),
+        });
         let frame_workers = workers.clone();
         let frames = session
             .declare_subscriber(keys::ALL_FRAMES)
             .callback(move |sample| {
-                let robot = keys::robot_id_of(sample.key_expr().as_str()).and_then(|id| frame_workers.robot(id));
+                let robot = keys::robot_id_of(sample.key_expr().as_str())
+                    .and_then(|id| frame_workers.robot(id));
                 let Some(robot) = robot else {
-                    frame_workers.registry.frames_on_bad_keys.fetch_add(1, Ordering::Relaxed);
+                    frame_workers
+                        .registry
+                        .frames_on_bad_keys
+                        .fetch_add(1, Ordering::Relaxed);
                     return;
                 };
                 robot.record_arrival();
@@ -85,7 +103,8 @@ impl Ingest {
             .history(true)
             .callback(move |sample| {
                 let key = sample.key_expr().as_str();
-                let Some(robot) = keys::robot_id_of(key).and_then(|id| presence_workers.robot(id)) else {
+                let Some(robot) = keys::robot_id_of(key).and_then(|id| presence_workers.robot(id))
+                else {
                     tracing::warn!(key, "liveliness token with an unusable robot id");
                     return;
                 };
@@ -97,7 +116,11 @@ impl Ingest {
                 robot.set_presence(presence);
             })
             .await?;
-        Ok(Self { _frames: frames, _presence: presence, workers })
+        Ok(Self {
+            _frames: frames,
+            _presence: presence,
+            workers,
+        })
     }
 
     /// Stops accepting frames, lets workers finish what is queued, and joins them.
@@ -105,7 +128,13 @@ impl Ingest {
         for robot in self.workers.registry.all() {
             robot.queue.close();
         }
-        let handles = std::mem::take(&mut *self.workers.handles.lock().unwrap_or_else(|p| p.into_inner()));
+        let handles = std::mem::take(
+            &mut *self
+                .workers
+                .handles
+                .lock()
+                .unwrap_or_else(|p| p.into_inner()),
+        );
         for handle in handles {
             let _ = handle.join();
         }
@@ -125,12 +154,15 @@ impl Continuity {
     /// Accounts for a frame with a readable sequence number (of the previous frame's session
     /// when `session_id` is None) and returns how many frames before it never arrived.
     fn advance(&mut self, session_id: Option<&str>, sequence: u64) -> u64 {
-        let Some(previous) = self.previous.as_mut() else { return 0 };
+        let Some(previous) = self.previous.as_mut() else {
+            return 0;
+        };
         let same_session = session_id.is_none_or(|s| s == previous.session_id);
         if !same_session || sequence <= previous.sequence {
             return 0;
         }
-        let lost = (sequence - previous.sequence - 1).saturating_sub(self.dropped_since + self.unsequenced_since);
+        let lost = (sequence - previous.sequence - 1)
+            .saturating_sub(self.dropped_since + self.unsequenced_since);
         previous.sequence = sequence;
         self.dropped_since = 0;
         self.unsequenced_since = 0;
@@ -159,13 +191,21 @@ fn run_worker(robot: Arc<RobotEntry>, config: &Config) {
         };
         continuity.dropped_since += arrival.dropped_before;
         let outcome = catch_unwind(AssertUnwindSafe(|| {
-            processor.process(&robot.robot_id, &arrival.bytes, continuity.previous.as_ref())
+            processor.process(
+                &robot.robot_id,
+                &arrival.bytes,
+                continuity.previous.as_ref(),
+            )
         }));
         match outcome {
             Ok(Ok(processed)) => {
                 let lost = continuity.advance(Some(&processed.session_id), processed.sequence);
                 if lost > 0 {
-                    tracing::warn!(lost, sequence = processed.sequence, "frames lost in transit");
+                    tracing::warn!(
+                        lost,
+                        sequence = processed.sequence,
+                        "frames lost in transit"
+                    );
                     robot.record_lost(lost);
                 }
                 robot.record_session(&processed.session_id);
@@ -190,7 +230,11 @@ fn run_worker(robot: Arc<RobotEntry>, config: &Config) {
                 );
             }
             Ok(Err(rejection)) => {
-                tracing::debug!(reason = rejection.reason.code(), message = rejection.message, "frame rejected");
+                tracing::debug!(
+                    reason = rejection.reason.code(),
+                    message = rejection.message,
+                    "frame rejected"
+                );
                 // A rejected frame with a sequence number still fills its place in the sequence.
                 match rejection.sequence {
                     Some(sequence) => robot.record_lost(continuity.advance(None, sequence)),
@@ -227,12 +271,19 @@ mod tests {
     use super::*;
 
     fn header(session: &str, sequence: u64) -> Option<FrameHeader> {
-        Some(FrameHeader { session_id: session.into(), sequence, timestamp_ns: 1 })
+        Some(FrameHeader {
+            session_id: session.into(),
+            sequence,
+            timestamp_ns: 1,
+        })
     }
 
     #[test]
     fn gaps_not_explained_by_drops_are_lost() {
-        let mut c = Continuity { previous: header("s", 10), ..Default::default() };
+        let mut c = Continuity {
+            previous: header("s", 10),
+            ..Default::default()
+        };
         assert_eq!(c.advance(Some("s"), 11), 0);
         c.dropped_since = 2;
         assert_eq!(c.advance(Some("s"), 15), 1);

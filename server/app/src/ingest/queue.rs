@@ -41,7 +41,11 @@ struct Inner {
 impl FrameQueue {
     pub fn new(capacity: usize, drop_oldest: bool) -> Self {
         Self {
-            inner: Mutex::new(Inner { frames: VecDeque::with_capacity(capacity), closed: false, dropped_tail: 0 }),
+            inner: Mutex::new(Inner {
+                frames: VecDeque::with_capacity(capacity),
+                closed: false,
+                dropped_tail: 0,
+            }),
             ready: Condvar::new(),
             capacity: capacity.max(1),
             drop_oldest,
@@ -113,11 +117,17 @@ mod tests {
     use super::*;
 
     fn frame(tag: u8) -> Arrival {
-        Arrival { bytes: vec![tag], received_ns: 0, dropped_before: 0 }
+        Arrival {
+            bytes: vec![tag],
+            received_ns: 0,
+            dropped_before: 0,
+        }
     }
 
     fn drain_with_drops(queue: &FrameQueue) -> Vec<(u8, u64)> {
-        std::iter::from_fn(|| queue.pop(Duration::ZERO)).map(|a| (a.bytes[0], a.dropped_before)).collect()
+        std::iter::from_fn(|| queue.pop(Duration::ZERO))
+            .map(|a| (a.bytes[0], a.dropped_before))
+            .collect()
     }
 
     #[test]
@@ -143,7 +153,9 @@ mod tests {
     }
 
     fn drain(queue: &FrameQueue) -> Vec<u8> {
-        std::iter::from_fn(|| queue.pop(Duration::ZERO)).map(|a| a.bytes[0]).collect()
+        std::iter::from_fn(|| queue.pop(Duration::ZERO))
+            .map(|a| a.bytes[0])
+            .collect()
     }
 
     #[test]
