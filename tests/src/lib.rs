@@ -5,7 +5,7 @@ use std::future::Future;
 use std::net::TcpListener;
 use std::path::PathBuf;
 use std::time::{Duration, Instant};
-use vsgraphs_proto::{CameraModel, ColourImage, DepthEncoding, DepthImage, PixelFormat};
+use vsgraphs_proto::{ColourImage, DepthEncoding, DepthImage, PixelFormat};
 use vsgraphs_sdk::{encode, Client, Robot, RobotConfig};
 use vsgraphs_server::config::Config;
 use vsgraphs_server::Server;
@@ -96,18 +96,6 @@ where
 /// The D435-like camera of the paper's dataset.
 pub fn d435() -> PinholeCamera {
     PinholeCamera::new(640, 480, [605.86, 606.27, 325.02, 244.76], vec![]).unwrap()
-}
-
-pub fn camera_model(camera: &PinholeCamera) -> CameraModel {
-    CameraModel {
-        width: camera.width,
-        height: camera.height,
-        fx: camera.fx,
-        fy: camera.fy,
-        cx: camera.cx,
-        cy: camera.cy,
-        distortion: camera.distortion.clone(),
-    }
 }
 
 /// A rendered frame encoded as a robot would send it: JPEG colour, RVL depth in millimetres.

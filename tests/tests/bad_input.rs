@@ -25,7 +25,7 @@ async fn bad_frames_are_rejected_with_reasons_and_the_stream_goes_on() {
     };
     let rendered = render(&camera, &dictionary, &[marker], 2.0).unwrap();
     let (colour, depth) = encode_rendered(&camera, &rendered);
-    let model = camera_model(&camera);
+    let model = camera.to_wire();
 
     // Sends one good frame and waits until the server has processed it.
     let good = |label: &'static str| {

@@ -52,7 +52,7 @@ async fn marker_poses_arrive_within_a_centimetre_and_a_degree() {
         let rendered = render(&camera, &dictionary, &placed, 2.5).unwrap();
         let (colour, depth) = encode_rendered(&camera, &rendered);
         let (sequence, _) = robot
-            .publish(now_ns(), camera_model(&camera), 1000.0, colour, depth)
+            .publish(now_ns(), camera.to_wire(), 1000.0, colour, depth)
             .await
             .unwrap();
         let detections = wait_for(

@@ -2,7 +2,7 @@
 //! protobuf decode, validation, JPEG and RVL decode, detection, poses.
 use criterion::{criterion_group, criterion_main, Criterion};
 use nalgebra::{Isometry3, Translation3, UnitQuaternion};
-use vsgraphs_proto::{CameraModel, DepthEncoding, Message, PixelFormat, RgbdFrame};
+use vsgraphs_proto::{DepthEncoding, Message, PixelFormat, RgbdFrame};
 use vsgraphs_sdk::encode;
 use vsgraphs_server::config::MarkerConfig;
 use vsgraphs_server::pipeline::FrameProcessor;
@@ -39,15 +39,7 @@ fn ingest(c: &mut Criterion) {
         session_id: "s".into(),
         sequence: 1,
         timestamp_ns: 1,
-        camera: Some(CameraModel {
-            width: 640,
-            height: 480,
-            fx: camera.fx,
-            fy: camera.fy,
-            cx: camera.cx,
-            cy: camera.cy,
-            distortion: vec![],
-        }),
+        camera: Some(camera.to_wire()),
         depth_scale: 1000.0,
         colour: Some(colour),
         depth: Some(depth),

@@ -198,18 +198,8 @@ impl FrameProcessor {
             }
         }
         let wire_camera = frame.camera.as_ref().expect("checked by parse");
-        let camera = PinholeCamera::new(
-            wire_camera.width,
-            wire_camera.height,
-            [
-                wire_camera.fx,
-                wire_camera.fy,
-                wire_camera.cx,
-                wire_camera.cy,
-            ],
-            wire_camera.distortion.clone(),
-        )
-        .map_err(|e| reject(Reason::BadCamera, e.to_string(), sequence))?;
+        let camera = PinholeCamera::from_wire(wire_camera)
+            .map_err(|e| reject(Reason::BadCamera, e.to_string(), sequence))?;
         let colour = frame.colour.as_ref().expect("checked by parse");
         let grey = decode::colour_to_grey(colour, camera.width, camera.height)
             .map_err(|e| decode_rejection(e, Reason::ColourDecode, sequence))?;

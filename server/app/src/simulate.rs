@@ -4,7 +4,7 @@
 
 use nalgebra::{Isometry3, Translation3, UnitQuaternion};
 use std::time::{Duration, Instant};
-use vsgraphs_proto::{CameraModel, DepthEncoding, PixelFormat};
+use vsgraphs_proto::{DepthEncoding, PixelFormat};
 use vsgraphs_sdk::robot::now_ns;
 use vsgraphs_sdk::{encode, Robot};
 use vsgraphs_vision::camera::PinholeCamera;
@@ -19,15 +19,7 @@ pub async fn simulate_markers(
     rate_hz: f64,
 ) -> anyhow::Result<()> {
     let camera = PinholeCamera::new(640, 480, [605.86, 606.27, 325.02, 244.76], vec![])?;
-    let model = CameraModel {
-        width: 640,
-        height: 480,
-        fx: camera.fx,
-        fy: camera.fy,
-        cx: camera.cx,
-        cy: camera.cy,
-        distortion: vec![],
-    };
+    let model = camera.to_wire();
     let ids: Vec<i32> = (0..6).map(|i| (i * 7) % dictionary.markers).collect();
     let start = Instant::now();
     let period = Duration::from_secs_f64(1.0 / rate_hz.max(0.1));

@@ -2,6 +2,7 @@
 
 use nalgebra::{Point2, Vector3};
 use thiserror::Error;
+use vsgraphs_proto::CameraModel;
 
 /// Largest image side accepted from the network, in pixels.
 pub const MAX_SIDE: u32 = 8192;
@@ -65,6 +66,29 @@ impl PinholeCamera {
         })
     }
 
+    /// The camera of a wire frame, checked.
+    pub fn from_wire(camera: &CameraModel) -> Result<Self, CameraError> {
+        Self::new(
+            camera.width,
+            camera.height,
+            [camera.fx, camera.fy, camera.cx, camera.cy],
+            camera.distortion.clone(),
+        )
+    }
+
+    /// The camera as robots send it.
+    pub fn to_wire(&self) -> CameraModel {
+        CameraModel {
+            width: self.width,
+            height: self.height,
+            fx: self.fx,
+            fy: self.fy,
+            cx: self.cx,
+            cy: self.cy,
+            distortion: self.distortion.clone(),
+        }
+    }
+
     /// True when every distortion coefficient is zero (or none is given).
     pub fn is_undistorted(&self) -> bool {
         self.distortion.iter().all(|&k| k == 0.0)
@@ -115,6 +139,24 @@ mod tests {
         assert!(matches!(
             PinholeCamera::new(640, 480, ok, vec![0.1, 0.2, 0.0]),
             Err(CameraError::BadDistortion(_))
+        ));
+    }
+
+    #[test]
+    fn wire_round_trip_keeps_every_field() {
+        let camera = PinholeCamera::new(
+            640,
+            480,
+            [585.0, 590.0, 320.0, 240.0],
+            vec![0.1, -0.2, 0.0, 0.0],
+        )
+        .unwrap();
+        assert_eq!(PinholeCamera::from_wire(&camera.to_wire()).unwrap(), camera);
+        let mut wire = camera.to_wire();
+        wire.fy = 0.0;
+        assert!(matches!(
+            PinholeCamera::from_wire(&wire),
+            Err(CameraError::BadFocal(..))
         ));
     }
 
