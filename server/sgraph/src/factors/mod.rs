@@ -1,0 +1,3 @@
+//! The factors, one small file per family.
+
+pub mod pose;
