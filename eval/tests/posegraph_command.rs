@@ -1,24 +1,12 @@
 //! `vsgraphs-eval posegraph`: the optimised graph it writes is the optimum it reports.
 
-use std::path::PathBuf;
 use std::process::Command;
 use vsgraphs_sgraph::factors::pose::PoseError;
 use vsgraphs_sgraph::g2o::PoseGraph;
+use vsgraphs_sgraph::testing::shared_data;
 
-fn small_grid() -> Option<PathBuf> {
-    let dir = std::env::var_os("VSGRAPHS_TEST_DATA")
-        .map(PathBuf::from)
-        .unwrap_or_else(|| PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../shared/data"));
-    let path = dir.join("posegraph/smallGrid3D.g2o");
-    if path.exists() {
-        Some(path)
-    } else {
-        eprintln!(
-            "skipped: {} is absent (set VSGRAPHS_TEST_DATA)",
-            path.display()
-        );
-        None
-    }
+fn small_grid() -> Option<std::path::PathBuf> {
+    shared_data("posegraph/smallGrid3D.g2o")
 }
 
 #[test]

@@ -6,6 +6,26 @@ use crate::lie::Se3;
 use crate::values::Values;
 use nalgebra::{DMatrix, DMatrixViewMut, DVector, Vector3, Vector6};
 
+/// A file of the shared test data (`../shared/data` beside the repository, or
+/// `VSGRAPHS_TEST_DATA`); `None`, with a message saying why the caller skips, when absent.
+pub fn shared_data(relative: &str) -> Option<std::path::PathBuf> {
+    let dir = std::env::var_os("VSGRAPHS_TEST_DATA")
+        .map(std::path::PathBuf::from)
+        .unwrap_or_else(|| {
+            std::path::PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../../shared/data")
+        });
+    let path = dir.join(relative);
+    if path.exists() {
+        Some(path)
+    } else {
+        eprintln!(
+            "skipped: {} is absent (set VSGRAPHS_TEST_DATA)",
+            path.display()
+        );
+        None
+    }
+}
+
 /// A small deterministic generator (SplitMix64), so tests need no `rand` and repeat exactly.
 #[derive(Clone, Debug)]
 pub struct Rng(u64);

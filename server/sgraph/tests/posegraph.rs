@@ -1,29 +1,16 @@
 //! Pose graphs: the public benchmarks' known optima, and synthetic graphs with known truth.
 
 use nalgebra::{UnitQuaternion, Vector3, Vector6};
-use std::path::PathBuf;
 use vsgraphs_sgraph::factors::pose::{BetweenFactor, PoseError};
 use vsgraphs_sgraph::g2o::PoseGraph;
-use vsgraphs_sgraph::testing::Rng;
+use vsgraphs_sgraph::testing::{shared_data, Rng};
 use vsgraphs_sgraph::{
     FactorId, Information, Kernel, Key, Method, Options, Problem, Se3, SolveError, Solver,
     Termination, Values,
 };
 
-fn data_file(name: &str) -> Option<PathBuf> {
-    let dir = std::env::var_os("VSGRAPHS_TEST_DATA")
-        .map(PathBuf::from)
-        .unwrap_or_else(|| PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../../shared/data"));
-    let path = dir.join("posegraph").join(name);
-    if path.exists() {
-        Some(path)
-    } else {
-        eprintln!(
-            "skipped: {} is absent (set VSGRAPHS_TEST_DATA)",
-            path.display()
-        );
-        None
-    }
+fn data_file(name: &str) -> Option<std::path::PathBuf> {
+    shared_data(&format!("posegraph/{name}"))
 }
 
 /// Optimises a benchmark file from its initial values and returns the final cost.
