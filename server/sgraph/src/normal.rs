@@ -95,16 +95,14 @@ impl NormalEquations {
                 n += values.variable(id).expect("id from ids()").kind().dim();
             }
         }
-        let dim_of = |off: usize, values: &Values, id: crate::values::VarId| {
-            let _ = off;
-            values.variable(id).expect("checked key").kind().dim()
-        };
+        let dim_of =
+            |id: crate::values::VarId| values.variable(id).expect("checked key").kind().dim();
         // Block rows of each block column, keyed by column offset then row offset.
         let mut blocks: BTreeMap<usize, BTreeMap<usize, usize>> = BTreeMap::new();
         for id in values.ids() {
             let off = offset[id.index()];
             if off != usize::MAX {
-                let d = dim_of(off, values, id);
+                let d = dim_of(id);
                 blocks.entry(off).or_default().insert(off, d);
             }
         }
@@ -116,10 +114,7 @@ impl NormalEquations {
                     if oa == usize::MAX || ob == usize::MAX || oa > ob {
                         continue;
                     }
-                    blocks
-                        .entry(ob)
-                        .or_default()
-                        .insert(oa, dim_of(oa, values, a));
+                    blocks.entry(ob).or_default().insert(oa, dim_of(a));
                 }
             }
         }

@@ -165,6 +165,11 @@ mod tests {
                 let i = values.add(xi);
                 let j = values.add(xj);
                 let factor = BetweenFactor::new(i, j, z, error);
+                // The log map jumps at a rotation of π (see the prior's test).
+                let e = z.inverse().compose(&xi.inverse().compose(&xj));
+                if error == PoseError::LogMap && e.log().fixed_rows::<3>(3).norm() > std::f64::consts::PI - 1e-2 {
+                    continue;
+                }
                 let err = jacobian_error(&factor, &values);
                 prop_assert!(err < 1e-6, "{error:?}: {err}");
             }
@@ -175,6 +180,10 @@ mod tests {
             let mut values = Values::new();
             let x = values.add(random_se3(seed));
             let factor = PriorFactor::new(x, random_se3(seed + 1));
+            // The log map jumps at a rotation of π, where no derivative exists and central
+            // differences straddle the jump (seed 9394925336661579529: 3e-5 rad from π).
+            let r = factor.prior.local(values.get(x));
+            prop_assume!(r.fixed_rows::<3>(3).norm() < std::f64::consts::PI - 1e-2);
             prop_assert!(jacobian_error(&factor, &values) < 1e-6);
         }
     }
