@@ -54,6 +54,8 @@ pub enum InformationError {
 #[derive(Clone, Debug, PartialEq)]
 pub struct Information {
     sqrt: DMatrix<f64>,
+    /// True when `R` is diagonal, so whitening is a scaling.
+    diagonal: bool,
 }
 
 impl Information {
@@ -75,9 +77,11 @@ impl Information {
             return Err(InformationError::NotSymmetric(asymmetry));
         }
         match omega.clone().cholesky() {
-            Some(chol) => Ok(Self {
-                sqrt: chol.l().transpose(),
-            }),
+            Some(chol) => {
+                let sqrt = chol.l().transpose();
+                let diagonal = (0..n).all(|c| (0..c).all(|r| sqrt[(r, c)] == 0.0));
+                Ok(Self { sqrt, diagonal })
+            }
             None => Err(InformationError::NotPositiveDefinite(
                 omega.symmetric_eigenvalues().min(),
             )),
@@ -121,6 +125,24 @@ impl Information {
     /// Upper-triangular `R` with `Ω = RᵀR`.
     pub fn sqrt(&self) -> &DMatrix<f64> {
         &self.sqrt
+    }
+
+    /// `v ← R·v`, the whitened residual (or Jacobian column).
+    #[inline]
+    pub fn whiten(&self, v: &mut [f64]) {
+        let m = v.len();
+        debug_assert_eq!(m, self.dim());
+        let r = self.sqrt.as_slice(); // column-major
+        if self.diagonal {
+            for (i, x) in v.iter_mut().enumerate() {
+                *x *= r[i * m + i];
+            }
+        } else {
+            // Row i of an upper-triangular R reads only entries ≥ i, so in place is safe.
+            for i in 0..m {
+                v[i] = (i..m).map(|k| r[k * m + i] * v[k]).sum();
+            }
+        }
     }
 
     pub fn matrix(&self) -> DMatrix<f64> {

@@ -5,6 +5,7 @@
 //! Conventions: perturbations act on the right (`X ⊕ δ = X · Exp(δ)`); an SE(3) tangent is
 //! `[ρ; φ]` (translation first); the cost is `Σ ρ(rᵀΩr)`, g2o's "chi2" without kernels.
 
+pub mod camera;
 pub mod factor;
 pub mod factors;
 pub mod g2o;
@@ -16,6 +17,7 @@ pub mod solver;
 pub mod testing;
 pub mod values;
 
+pub use camera::Pinhole;
 pub use factor::{Factor, Information, InformationError, Kernel};
 pub use lie::Se3;
 pub use plane::Plane;

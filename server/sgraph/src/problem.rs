@@ -2,7 +2,7 @@
 
 use crate::factor::{Factor, Information, Kernel};
 use crate::values::{Values, VarId};
-use nalgebra::{DMatrix, DMatrixViewMut};
+use nalgebra::DMatrixViewMut;
 use thiserror::Error;
 
 /// Index of a factor in its [`Problem`].
@@ -165,25 +165,12 @@ fn entry_cost(e: &Entry, values: &Values, r: &mut Vec<f64>) -> f64 {
     r.clear();
     r.resize(m, 0.0);
     e.factor.evaluate(values, r, None);
-    let s = whitened_norm2(e.information.sqrt(), r);
+    e.information.whiten(r);
+    let s = r.iter().map(|v| v * v).sum();
     match e.kernel {
         Some(k) => k.evaluate(s).0,
         None => s,
     }
-}
-
-/// `|R r|²` for upper-triangular `R`.
-fn whitened_norm2(sqrt: &DMatrix<f64>, r: &[f64]) -> f64 {
-    let m = r.len();
-    let mut s = 0.0;
-    for i in 0..m {
-        let mut v = 0.0;
-        for j in i..m {
-            v += sqrt[(i, j)] * r[j];
-        }
-        s += v * v;
-    }
-    s
 }
 
 /// Scratch for linearising one factor, reused across factors.
@@ -191,8 +178,6 @@ fn whitened_norm2(sqrt: &DMatrix<f64>, r: &[f64]) -> f64 {
 pub(crate) struct Linearized {
     pub residual: Vec<f64>,
     pub jacobian: Vec<f64>,
-    white_r: Vec<f64>,
-    white_j: Vec<f64>,
 }
 
 impl Linearized {
@@ -210,40 +195,19 @@ impl Linearized {
             &mut self.residual,
             Some(DMatrixViewMut::from_slice(&mut self.jacobian, m, n)),
         );
-        let sqrt = e.information.sqrt();
-        self.white_r.clear();
-        self.white_r.resize(m, 0.0);
-        self.white_j.clear();
-        self.white_j.resize(m * n, 0.0);
-        for i in 0..m {
-            let mut v = 0.0;
-            for k in i..m {
-                v += sqrt[(i, k)] * self.residual[k];
-            }
-            self.white_r[i] = v;
+        e.information.whiten(&mut self.residual);
+        for col in self.jacobian.chunks_exact_mut(m) {
+            e.information.whiten(col);
         }
-        for c in 0..n {
-            let col = &self.jacobian[c * m..(c + 1) * m];
-            let out = &mut self.white_j[c * m..(c + 1) * m];
-            for i in 0..m {
-                let mut v = 0.0;
-                for k in i..m {
-                    v += sqrt[(i, k)] * col[k];
-                }
-                out[i] = v;
-            }
-        }
-        let s: f64 = self.white_r.iter().map(|v| v * v).sum();
+        let s: f64 = self.residual.iter().map(|v| v * v).sum();
         let (cost, weight) = match e.kernel {
             Some(k) => k.evaluate(s),
             None => (s, 1.0),
         };
-        let w = weight.max(0.0).sqrt();
-        for (dst, src) in self.residual.iter_mut().zip(&self.white_r) {
-            *dst = src * w;
-        }
-        for (dst, src) in self.jacobian.iter_mut().zip(&self.white_j) {
-            *dst = src * w;
+        if weight != 1.0 {
+            let w = weight.max(0.0).sqrt();
+            self.residual.iter_mut().for_each(|v| *v *= w);
+            self.jacobian.iter_mut().for_each(|v| *v *= w);
         }
         cost
     }

@@ -32,6 +32,9 @@ pub struct Options {
     pub max_rejections: usize,
     /// Stops (with the best values so far) once this much time has passed.
     pub time_limit: Option<Duration>,
+    /// Removes free points that no factor shares with another point (bundle adjustment's map
+    /// points) by the Schur complement before the sparse Cholesky.
+    pub eliminate_points: bool,
 }
 
 impl Default for Options {
@@ -45,6 +48,7 @@ impl Default for Options {
             step_tolerance: 1e-12,
             max_rejections: 12,
             time_limit: None,
+            eliminate_points: true,
         }
     }
 }
@@ -90,6 +94,9 @@ pub struct Report {
     pub termination: Termination,
     /// Time spent analysing sparsity (zero when the previous analysis was reused).
     pub analysis_time: Duration,
+    /// Points removed by the Schur complement, and the size of the system left to factor.
+    pub eliminated_points: usize,
+    pub reduced_dim: usize,
     pub total_time: Duration,
 }
 
@@ -124,10 +131,11 @@ impl Solver {
         let start = Instant::now();
         let opts = self.options.clone();
         let mut analysis_time = Duration::ZERO;
-        if self.system.as_ref().map(|s| s.layout()) != Some(problem.layout_version()) {
+        let layout = (problem.layout_version(), opts.eliminate_points);
+        if self.system.as_ref().map(|s| s.layout()) != Some(layout) {
             let t = Instant::now();
             self.system = Some(
-                NormalEquations::analyse(problem)
+                NormalEquations::analyse(problem, opts.eliminate_points)
                     .map_err(|e| SolveError::Analysis(e.to_string()))?,
             );
             analysis_time = t.elapsed();
@@ -144,6 +152,8 @@ impl Solver {
             iterations: Vec::new(),
             termination: Termination::NothingToDo,
             analysis_time,
+            eliminated_points: system.eliminated(),
+            reduced_dim: system.dim() - 3 * system.eliminated(),
             total_time: Duration::ZERO,
         };
         if system.dim() == 0 || entries.is_empty() {

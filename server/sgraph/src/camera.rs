@@ -1,0 +1,44 @@
+//! The pinhole projection used by the reprojection factors, with its Jacobian.
+//!
+//! Images are rectified before they reach the optimiser (detected corners and keypoints are
+//! undistorted by the vision crate), so the model here has no distortion.
+
+use nalgebra::{Matrix2x3, Vector2, Vector3};
+
+/// Points closer to the image plane than this (metres) are projected as if they were this far,
+/// so a point that wanders behind a camera during a step gives a large but finite residual.
+pub const MIN_DEPTH: f64 = 1e-3;
+
+/// Intrinsics of a rectified pinhole camera, in pixels.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Pinhole {
+    pub fx: f64,
+    pub fy: f64,
+    pub cx: f64,
+    pub cy: f64,
+}
+
+impl Pinhole {
+    pub fn new(fx: f64, fy: f64, cx: f64, cy: f64) -> Self {
+        Self { fx, fy, cx, cy }
+    }
+
+    /// Pixel of a point given in the camera frame (OpenCV axes: x right, y down, z forward).
+    pub fn project(&self, p: &Vector3<f64>) -> Vector2<f64> {
+        let z = p.z.max(MIN_DEPTH);
+        Vector2::new(self.fx * p.x / z + self.cx, self.fy * p.y / z + self.cy)
+    }
+
+    /// `∂ project / ∂ p` (the depth column is zero where the depth is clamped).
+    pub fn project_jacobian(&self, p: &Vector3<f64>) -> Matrix2x3<f64> {
+        let clamped = p.z < MIN_DEPTH;
+        let z = p.z.max(MIN_DEPTH);
+        let iz = 1.0 / z;
+        let (dz_u, dz_v) = if clamped {
+            (0.0, 0.0)
+        } else {
+            (-self.fx * p.x * iz * iz, -self.fy * p.y * iz * iz)
+        };
+        Matrix2x3::new(self.fx * iz, 0.0, dz_u, 0.0, self.fy * iz, dz_v)
+    }
+}

@@ -1,0 +1,236 @@
+//! Reprojection of map points into keyframes: RGB-D (u, v and the virtual right-image u_r, as
+//! ORB-SLAM does for RGB-D) and monocular (u, v).
+//!
+//! A keyframe variable is `world_from_camera`. Under its right perturbation `T·Exp([ρ; φ])` a
+//! world point seen from the camera, `p_c = Tᵀ·p_w`, moves by `−ρ + [p_c]×φ`.
+
+use crate::camera::{Pinhole, MIN_DEPTH};
+use crate::factor::Factor;
+use crate::lie::{hat, Se3};
+use crate::values::{Key, Kind, Values, VarId};
+use nalgebra::{DMatrixViewMut, Matrix3, Matrix3x6, Vector2, Vector3};
+
+/// `∂p_c/∂δ` for the camera pose: `[−I, [p_c]×]`.
+pub(crate) fn point_in_camera_jacobian(p_c: &Vector3<f64>) -> Matrix3x6<f64> {
+    let mut j = Matrix3x6::zeros();
+    j.fixed_view_mut::<3, 3>(0, 0)
+        .copy_from(&(-Matrix3::identity()));
+    j.fixed_view_mut::<3, 3>(0, 3).copy_from(&hat(p_c));
+    j
+}
+
+/// Writes `∂r/∂δ_pose` and `∂r/∂δ_point` for a residual `r = g(p_c)` with `∂g/∂p_c = dg`.
+fn write_jacobian<const M: usize>(
+    jac: &mut DMatrixViewMut<'_, f64>,
+    dg: &nalgebra::SMatrix<f64, M, 3>,
+    p_c: &Vector3<f64>,
+    camera_from_world: &Matrix3<f64>,
+) {
+    jac.fixed_view_mut::<M, 6>(0, 0)
+        .copy_from(&(dg * point_in_camera_jacobian(p_c)));
+    jac.fixed_view_mut::<M, 3>(0, 6)
+        .copy_from(&(dg * camera_from_world));
+}
+
+/// `r = [u, v, u_r](T⁻¹·p) − measured`: a keypoint with depth. `u_r = u − bf/z`, where `bf`
+/// is the focal length times the virtual stereo baseline (ORB-SLAM's `mbf`).
+#[derive(Clone, Debug)]
+pub struct StereoProjectionFactor {
+    keys: [VarId; 2],
+    pub camera: Pinhole,
+    pub bf: f64,
+    /// Measured `(u, v, u_r)`, pixels.
+    pub measured: Vector3<f64>,
+}
+
+impl StereoProjectionFactor {
+    pub fn new(
+        world_from_camera: Key<Se3>,
+        point: Key<Vector3<f64>>,
+        camera: Pinhole,
+        bf: f64,
+        measured: Vector3<f64>,
+    ) -> Self {
+        Self {
+            keys: [world_from_camera.id, point.id],
+            camera,
+            bf,
+            measured,
+        }
+    }
+}
+
+impl Factor for StereoProjectionFactor {
+    fn keys(&self) -> &[VarId] {
+        &self.keys
+    }
+
+    fn kinds(&self) -> &[Kind] {
+        &[Kind::Pose, Kind::Point]
+    }
+
+    fn residual_dim(&self) -> usize {
+        3
+    }
+
+    fn evaluate(
+        &self,
+        values: &Values,
+        residual: &mut [f64],
+        jacobian: Option<DMatrixViewMut<'_, f64>>,
+    ) {
+        let t = values.at::<Se3>(self.keys[0]);
+        let p_w = values.at::<Vector3<f64>>(self.keys[1]);
+        let camera_from_world = t.rotation.to_rotation_matrix().into_inner().transpose();
+        let p_c = camera_from_world * (p_w - t.translation);
+        let uv = self.camera.project(&p_c);
+        let z = p_c.z.max(MIN_DEPTH);
+        residual[0] = uv.x - self.measured.x;
+        residual[1] = uv.y - self.measured.y;
+        residual[2] = uv.x - self.bf / z - self.measured.z;
+        if let Some(mut jac) = jacobian {
+            let d_uv = self.camera.project_jacobian(&p_c);
+            let mut dg = nalgebra::Matrix3::zeros();
+            dg.fixed_view_mut::<2, 3>(0, 0).copy_from(&d_uv);
+            dg.fixed_view_mut::<1, 3>(2, 0).copy_from(&d_uv.row(0));
+            if p_c.z >= MIN_DEPTH {
+                dg[(2, 2)] += self.bf / (z * z);
+            }
+            write_jacobian::<3>(&mut jac, &dg, &p_c, &camera_from_world);
+        }
+    }
+}
+
+/// `r = π(T⁻¹·p) − measured`: a keypoint without depth.
+#[derive(Clone, Debug)]
+pub struct ProjectionFactor {
+    keys: [VarId; 2],
+    pub camera: Pinhole,
+    /// Measured `(u, v)`, pixels.
+    pub measured: Vector2<f64>,
+}
+
+impl ProjectionFactor {
+    pub fn new(
+        world_from_camera: Key<Se3>,
+        point: Key<Vector3<f64>>,
+        camera: Pinhole,
+        measured: Vector2<f64>,
+    ) -> Self {
+        Self {
+            keys: [world_from_camera.id, point.id],
+            camera,
+            measured,
+        }
+    }
+}
+
+impl Factor for ProjectionFactor {
+    fn keys(&self) -> &[VarId] {
+        &self.keys
+    }
+
+    fn kinds(&self) -> &[Kind] {
+        &[Kind::Pose, Kind::Point]
+    }
+
+    fn residual_dim(&self) -> usize {
+        2
+    }
+
+    fn evaluate(
+        &self,
+        values: &Values,
+        residual: &mut [f64],
+        jacobian: Option<DMatrixViewMut<'_, f64>>,
+    ) {
+        let t = values.at::<Se3>(self.keys[0]);
+        let p_w = values.at::<Vector3<f64>>(self.keys[1]);
+        let camera_from_world = t.rotation.to_rotation_matrix().into_inner().transpose();
+        let p_c = camera_from_world * (p_w - t.translation);
+        let uv = self.camera.project(&p_c);
+        residual[0] = uv.x - self.measured.x;
+        residual[1] = uv.y - self.measured.y;
+        if let Some(mut jac) = jacobian {
+            let dg = self.camera.project_jacobian(&p_c);
+            write_jacobian::<2>(&mut jac, &dg, &p_c, &camera_from_world);
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::testing::{jacobian_error, random_se3, Rng};
+    use proptest::prelude::*;
+
+    pub(crate) fn d435() -> Pinhole {
+        Pinhole::new(605.86, 606.27, 325.02, 244.76)
+    }
+
+    /// A camera and a point in front of it at `depth` metres, seen near the image's edge or centre.
+    fn scene(seed: u64, depth: f64) -> (Values, Key<Se3>, Key<Vector3<f64>>) {
+        let mut rng = Rng::new(seed);
+        let t = random_se3(seed);
+        let p_c = Vector3::new(
+            rng.range(-0.5, 0.5) * depth,
+            rng.range(-0.4, 0.4) * depth,
+            depth,
+        );
+        let mut values = Values::new();
+        let pose = values.add(t);
+        let point = values.add(t.transform_point(&p_c));
+        (values, pose, point)
+    }
+
+    proptest! {
+        #[test]
+        fn stereo_projection_jacobians_match_differences(seed in any::<u64>(), depth in prop::sample::select(vec![0.05, 0.5, 3.0, 40.0])) {
+            let (values, pose, point) = scene(seed, depth);
+            let f = StereoProjectionFactor::new(pose, point, d435(), 40.0, Vector3::new(300.0, 200.0, 290.0));
+            let err = jacobian_error(&f, &values);
+            prop_assert!(err < 1e-6, "{err}");
+        }
+
+        #[test]
+        fn projection_jacobians_match_differences(seed in any::<u64>(), depth in prop::sample::select(vec![0.05, 0.5, 3.0, 40.0])) {
+            let (values, pose, point) = scene(seed, depth);
+            let f = ProjectionFactor::new(pose, point, d435(), Vector2::new(10.0, 470.0));
+            let err = jacobian_error(&f, &values);
+            prop_assert!(err < 1e-6, "{err}");
+        }
+    }
+
+    #[test]
+    fn residual_is_zero_at_the_true_pixel_and_u_r_follows_depth() {
+        let camera = d435();
+        let mut values = Values::new();
+        let pose = values.add(Se3::identity());
+        let point = values.add(Vector3::new(0.2, -0.1, 2.0));
+        // Computed by hand: u = 605.86·0.1 + 325.02, v = 606.27·(−0.05) + 244.76, u_r = u − 40/2.
+        let measured = Vector3::new(385.606, 214.4465, 365.606);
+        let f = StereoProjectionFactor::new(pose, point, camera, 40.0, measured);
+        let mut r = [1.0; 3];
+        f.evaluate(&values, &mut r, None);
+        assert!(r.iter().all(|v| v.abs() < 1e-9), "{r:?}");
+    }
+
+    #[test]
+    fn a_point_behind_the_camera_gives_a_finite_residual() {
+        let mut values = Values::new();
+        let pose = values.add(Se3::identity());
+        let point = values.add(Vector3::new(0.2, -0.1, -2.0));
+        let f = StereoProjectionFactor::new(
+            pose,
+            point,
+            d435(),
+            40.0,
+            Vector3::new(300.0, 200.0, 290.0),
+        );
+        let (analytic, _) = crate::testing::factor_jacobians(&f, &values);
+        let mut r = [0.0; 3];
+        f.evaluate(&values, &mut r, None);
+        assert!(r.iter().all(|v| v.is_finite()) && r[0].abs() > 1e4);
+        assert!(analytic.iter().all(|v| v.is_finite()));
+    }
+}

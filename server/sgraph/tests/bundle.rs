@@ -1,0 +1,134 @@
+//! Synthetic RGB-D bundle adjustment: the optimiser recovers the ground truth within the noise,
+//! with and without the Schur complement of the points, and the two agree.
+
+use vsgraphs_sgraph::testing::{bundle_scene, BundleConfig, BundleScene};
+use vsgraphs_sgraph::{Options, Solver, Termination};
+
+fn rms(errors: impl Iterator<Item = f64>) -> f64 {
+    let (sum, n) = errors.fold((0.0, 0), |(s, n), e| (s + e * e, n + 1));
+    (sum / n as f64).sqrt()
+}
+
+fn keyframe_rmse(scene: &BundleScene) -> f64 {
+    let values = scene.problem.values();
+    rms(scene
+        .keyframes
+        .iter()
+        .zip(&scene.true_keyframes)
+        .map(|(k, t)| (values.get(*k).translation - t.translation).norm()))
+}
+
+fn point_rmse(scene: &BundleScene) -> f64 {
+    let values = scene.problem.values();
+    rms(scene
+        .points
+        .iter()
+        .zip(&scene.true_points)
+        .map(|(k, t)| (values.get(*k) - t).norm()))
+}
+
+#[test]
+fn local_bundle_adjustment_recovers_the_ground_truth() {
+    let config = BundleConfig::default();
+    let mut scene = bundle_scene(&config, 7);
+    assert!(scene.observations > 29_000, "{}", scene.observations);
+    let (kf_before, points_before) = (keyframe_rmse(&scene), point_rmse(&scene));
+    let report = Solver::new(Options::default())
+        .solve(&mut scene.problem)
+        .expect("solves");
+    let (kf_after, points_after) = (keyframe_rmse(&scene), point_rmse(&scene));
+    println!(
+        "keyframes {kf_before:.4} -> {kf_after:.5} m, points {points_before:.4} -> {points_after:.4} m, \
+         cost {:.1} -> {:.1} in {} iterations ({:?})",
+        report.initial_cost,
+        report.final_cost,
+        report.iterations.len(),
+        report.termination
+    );
+    assert_eq!(report.eliminated_points, config.points);
+    assert_eq!(
+        report.reduced_dim,
+        6 * (config.keyframes - config.fixed_keyframes)
+    );
+    assert!(matches!(
+        report.termination,
+        Termination::CostConverged | Termination::GradientConverged | Termination::StepConverged
+    ));
+    assert!(kf_after < kf_before / 5.0, "keyframe RMSE {kf_after}");
+    assert!(
+        points_after < points_before / 2.0,
+        "point RMSE {points_after}"
+    );
+    // The optimum reached from the noisy start is the one reached from the ground truth: what
+    // error is left is the noise's, not the solver's.
+    let mut from_truth = bundle_scene(&config, 7);
+    for (k, t) in from_truth
+        .keyframes
+        .clone()
+        .iter()
+        .zip(&scene.true_keyframes)
+    {
+        from_truth.problem.values_mut().set(*k, *t);
+    }
+    for (k, t) in from_truth.points.clone().iter().zip(&scene.true_points) {
+        from_truth.problem.values_mut().set(*k, *t);
+    }
+    Solver::new(Options::default())
+        .solve(&mut from_truth.problem)
+        .expect("solves");
+    let gap = rms(scene.keyframes.iter().map(|k| {
+        (scene.problem.values().get(*k).translation
+            - from_truth.problem.values().get(*k).translation)
+            .norm()
+    }));
+    assert!(gap < 1e-5, "the two optima differ by {gap} m");
+    // Each observation's squared whitened error averages about 1 at the optimum: 3 residuals per
+    // observation, less the parameters fitted.
+    let dof = 3 * scene.observations - 3 * config.points - 6 * (config.keyframes - 2);
+    let per_dof = report.final_cost / dof as f64;
+    assert!(
+        (0.8..1.2).contains(&per_dof),
+        "cost per degree of freedom {per_dof}"
+    );
+}
+
+#[test]
+fn the_schur_complement_changes_nothing_but_speed() {
+    let config = BundleConfig {
+        keyframes: 8,
+        points: 300,
+        observations_per_point: 4,
+        ..BundleConfig::default()
+    };
+    let mut with = bundle_scene(&config, 3);
+    let mut without = bundle_scene(&config, 3);
+    let options = |eliminate_points| Options {
+        eliminate_points,
+        max_iterations: 6,
+        ..Options::default()
+    };
+    let a = Solver::new(options(true)).solve(&mut with.problem).unwrap();
+    let b = Solver::new(options(false))
+        .solve(&mut without.problem)
+        .unwrap();
+    assert_eq!(a.eliminated_points, 300);
+    assert_eq!(b.eliminated_points, 0);
+    assert_eq!(a.iterations.len(), b.iterations.len());
+    for (x, y) in a.iterations.iter().zip(&b.iterations) {
+        assert!(
+            (x.tried_cost - y.tried_cost).abs() <= 1e-9 * y.tried_cost,
+            "iteration {}: {} vs {}",
+            x.iteration,
+            x.tried_cost,
+            y.tried_cost
+        );
+    }
+    // Some points lose all but one view when every keyframe but the fixed ones is fixed too:
+    // structure-only adjustment, where nothing is left to factor after elimination.
+    for k in &with.keyframes {
+        with.problem.values_mut().set_fixed(k.id, true);
+    }
+    let report = Solver::new(options(true)).solve(&mut with.problem).unwrap();
+    assert_eq!(report.reduced_dim, 0);
+    assert!(report.final_cost <= report.initial_cost);
+}
