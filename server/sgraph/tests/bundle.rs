@@ -123,8 +123,8 @@ fn the_schur_complement_changes_nothing_but_speed() {
             y.tried_cost
         );
     }
-    // Some points lose all but one view when every keyframe but the fixed ones is fixed too:
-    // structure-only adjustment, where nothing is left to factor after elimination.
+    // With every keyframe fixed, only the points move (structure-only adjustment): nothing is
+    // left to factor after elimination, and the points still improve.
     for k in &with.keyframes {
         with.problem.values_mut().set_fixed(k.id, true);
     }
