@@ -258,6 +258,8 @@ impl NormalEquations {
                 col_ptr.push(row_idx.len());
             }
         }
+        // A dense column holds every row from 0, so a block row starts at its own offset.
+        let prefix_of = |row: usize, col: usize| if dense { row } else { prefix[&(row, col)] };
         // Couplings and Schur pairs of each eliminated variable.
         let mut coupling_start = Vec::with_capacity(num_elim + 1);
         let mut couplings = Vec::new();
@@ -284,7 +286,7 @@ impl NormalEquations {
                         i: i as u32,
                         j: j as u32,
                         col0: oj,
-                        prefix: prefix[&(oi, oj)],
+                        prefix: prefix_of(oi, oj),
                     });
                 }
             }
@@ -308,7 +310,7 @@ impl NormalEquations {
                             a: ia as u8,
                             b: ib as u8,
                             col0: ob,
-                            prefix: prefix[&(oa, ob)],
+                            prefix: prefix_of(oa, ob),
                         });
                     } else if elim[a.index()] && ia == ib {
                         elim_slots.push(ElimSlot {
