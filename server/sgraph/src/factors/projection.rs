@@ -10,6 +10,12 @@ use crate::lie::{hat, Se3};
 use crate::values::{Key, Kind, Values, VarId};
 use nalgebra::{DMatrixViewMut, Matrix3, Matrix3x6, Vector2, Vector3};
 
+/// A world point seen from keyframe `T = world_from_camera`: `(R_cw, p_c)` with `p_c = R_cw·(p − t)`.
+pub(crate) fn in_camera(t: &Se3, p_w: &Vector3<f64>) -> (Matrix3<f64>, Vector3<f64>) {
+    let camera_from_world = t.rotation.to_rotation_matrix().into_inner().transpose();
+    (camera_from_world, camera_from_world * (p_w - t.translation))
+}
+
 /// `∂p_c/∂δ` for the camera pose: `[−I, [p_c]×]`.
 pub(crate) fn point_in_camera_jacobian(p_c: &Vector3<f64>) -> Matrix3x6<f64> {
     let mut j = Matrix3x6::zeros();
@@ -81,8 +87,7 @@ impl Factor for StereoProjectionFactor {
     ) {
         let t = values.at::<Se3>(self.keys[0]);
         let p_w = values.at::<Vector3<f64>>(self.keys[1]);
-        let camera_from_world = t.rotation.to_rotation_matrix().into_inner().transpose();
-        let p_c = camera_from_world * (p_w - t.translation);
+        let (camera_from_world, p_c) = in_camera(t, p_w);
         let uv = self.camera.project(&p_c);
         let z = p_c.z.max(MIN_DEPTH);
         residual[0] = uv.x - self.measured.x;
@@ -146,8 +151,7 @@ impl Factor for ProjectionFactor {
     ) {
         let t = values.at::<Se3>(self.keys[0]);
         let p_w = values.at::<Vector3<f64>>(self.keys[1]);
-        let camera_from_world = t.rotation.to_rotation_matrix().into_inner().transpose();
-        let p_c = camera_from_world * (p_w - t.translation);
+        let (camera_from_world, p_c) = in_camera(t, p_w);
         let uv = self.camera.project(&p_c);
         residual[0] = uv.x - self.measured.x;
         residual[1] = uv.y - self.measured.y;
