@@ -2,7 +2,9 @@
 
 use clap::{Parser, Subcommand, ValueEnum};
 use std::path::PathBuf;
+use vsgraphs_eval::metrics::{Alignment, Compare, Relation};
 use vsgraphs_eval::posegraph;
+use vsgraphs_eval::score::{self, Metric};
 use vsgraphs_sgraph::factors::pose::PoseError;
 use vsgraphs_sgraph::{Method, Options};
 
@@ -29,8 +31,90 @@ enum MethodArg {
     Gn,
 }
 
+#[derive(Clone, Copy, ValueEnum)]
+enum AlignArg {
+    /// Rotation and translation (evo's -a).
+    Se3,
+    /// Rotation, translation and scale (evo's -as), for monocular estimates.
+    Sim3,
+    None,
+}
+
+#[derive(Clone, Copy, ValueEnum)]
+enum RelationArg {
+    /// Translation error, metres.
+    Trans,
+    /// Rotation angle error, degrees.
+    Angle,
+}
+
+/// Options shared by `ate` and `rpe`.
+#[derive(clap::Args)]
+struct CompareArgs {
+    /// Reference (ground truth) trajectory, TUM format.
+    reference: PathBuf,
+    /// Estimated trajectory, TUM format.
+    estimate: PathBuf,
+    #[arg(long, value_enum, default_value = "se3")]
+    align: AlignArg,
+    #[arg(long, value_enum, default_value = "trans")]
+    relation: RelationArg,
+    /// Largest timestamp difference for a match, seconds.
+    #[arg(long, default_value_t = 0.01)]
+    max_diff: f64,
+    /// Added to the estimate's timestamps before matching, seconds.
+    #[arg(long, default_value_t = 0.0, allow_negative_numbers = true)]
+    offset: f64,
+    /// Print JSON instead of the table.
+    #[arg(long)]
+    json: bool,
+}
+
+impl CompareArgs {
+    fn compare(&self) -> Compare {
+        Compare {
+            alignment: match self.align {
+                AlignArg::Se3 => Alignment::Se3,
+                AlignArg::Sim3 => Alignment::Sim3,
+                AlignArg::None => Alignment::None,
+            },
+            relation: match self.relation {
+                RelationArg::Trans => Relation::Translation,
+                RelationArg::Angle => Relation::AngleDeg,
+            },
+            max_diff: self.max_diff,
+            offset: self.offset,
+        }
+    }
+
+    fn run(&self, metric: Metric) -> anyhow::Result<()> {
+        let report = score::run(&self.reference, &self.estimate, metric, &self.compare())?;
+        if self.json {
+            println!("{}", serde_json::to_string_pretty(&report)?);
+        } else {
+            score::print_table(&report);
+        }
+        Ok(())
+    }
+}
+
 #[derive(Subcommand)]
 enum Command {
+    /// Absolute trajectory error of an estimate against a reference (TUM files), as evo_ape.
+    Ate {
+        #[command(flatten)]
+        args: CompareArgs,
+    },
+    /// Relative pose error over pose pairs DELTA matched poses apart, as evo_rpe.
+    Rpe {
+        #[command(flatten)]
+        args: CompareArgs,
+        #[arg(long, default_value_t = 1)]
+        delta: usize,
+        /// Every pair (i, i + delta) instead of consecutive ones.
+        #[arg(long)]
+        all_pairs: bool,
+    },
     /// Optimise a g2o pose graph (VERTEX_SE3:QUAT / EDGE_SE3:QUAT) and print cost per iteration.
     Posegraph {
         input: PathBuf,
@@ -43,6 +127,9 @@ enum Command {
         method: MethodArg,
         #[arg(long, default_value_t = 100)]
         max_iterations: usize,
+        /// Threads for large problems (0: one per core).
+        #[arg(long, default_value_t = 0)]
+        threads: usize,
         /// Print JSON instead of the table.
         #[arg(long)]
         json: bool,
@@ -51,12 +138,19 @@ enum Command {
 
 fn main() -> anyhow::Result<()> {
     match Cli::parse().command {
+        Command::Ate { args } => args.run(Metric::Ape)?,
+        Command::Rpe {
+            args,
+            delta,
+            all_pairs,
+        } => args.run(Metric::Rpe { delta, all_pairs })?,
         Command::Posegraph {
             input,
             output,
             error,
             method,
             max_iterations,
+            threads,
             json,
         } => {
             let options = Options {
@@ -65,6 +159,7 @@ fn main() -> anyhow::Result<()> {
                     MethodArg::Gn => Method::GaussNewton,
                 },
                 max_iterations,
+                threads,
                 ..Options::default()
             };
             let error = match error {

@@ -8,7 +8,10 @@ use vsgraphs_tests::data_dir;
 use vsgraphs_vision::aruco::CornerRefinement;
 use vsgraphs_vision::dictionary::MarkerDictionary;
 
-fn gold(dir: &Path, image: &str) -> (Vec<(i64, Vec<[f64; 2]>)>, f64) {
+/// Expected markers of an image: each id with its four corners.
+type GoldMarkers = Vec<(i64, Vec<[f64; 2]>)>;
+
+fn gold(dir: &Path, image: &str) -> (GoldMarkers, f64) {
     let text = std::fs::read_to_string(dir.join("aruco/gold_corners.json")).unwrap();
     let json: Value = serde_json::from_str(&text).unwrap();
     let tolerance = json["tolerance_px"].as_f64().unwrap();

@@ -48,13 +48,13 @@ pub fn read_camera_yaml(path: &Path, width: u32, height: u32) -> anyhow::Result<
         d.convert_to(&mut d64, vsgraphs_vision::opencv::core::CV_64F, 1.0, 0.0)?;
         d64.data_typed::<f64>()?.to_vec()
     };
-    Ok(PinholeCamera::new(
+    PinholeCamera::new(
         width,
         height,
         [at(0, 0)?, at(1, 1)?, at(0, 2)?, at(1, 2)?],
         distortion,
     )
-    .with_context(|| format!("{name}: unusable camera"))?)
+    .with_context(|| format!("{name}: unusable camera"))
 }
 
 /// Detects markers in an image file; poses when both a camera and a marker side are given.

@@ -56,6 +56,9 @@ pub struct Information {
     sqrt: DMatrix<f64>,
     /// True when `R` is diagonal, so whitening is a scaling.
     diagonal: bool,
+    /// `s` when `R = s·I` (the usual pixel noise), so whitening is one multiplication that
+    /// linearisation folds into the robust weight.
+    isotropic: Option<f64>,
 }
 
 impl Information {
@@ -80,7 +83,13 @@ impl Information {
             Some(chol) => {
                 let sqrt = chol.l().transpose();
                 let diagonal = (0..n).all(|c| (0..c).all(|r| sqrt[(r, c)] == 0.0));
-                Ok(Self { sqrt, diagonal })
+                let isotropic = (diagonal && n > 0 && (1..n).all(|i| sqrt[(i, i)] == sqrt[(0, 0)]))
+                    .then(|| sqrt[(0, 0)]);
+                Ok(Self {
+                    sqrt,
+                    diagonal,
+                    isotropic,
+                })
             }
             None => Err(InformationError::NotPositiveDefinite(
                 omega.symmetric_eigenvalues().min(),
@@ -120,6 +129,11 @@ impl Information {
 
     pub fn dim(&self) -> usize {
         self.sqrt.nrows()
+    }
+
+    /// `s` when `R = s·I`.
+    pub fn isotropic_scale(&self) -> Option<f64> {
+        self.isotropic
     }
 
     /// Upper-triangular `R` with `Ω = RᵀR`.

@@ -11,6 +11,7 @@ pub mod factors;
 pub mod g2o;
 pub mod lie;
 mod normal;
+mod parallel;
 pub mod plane;
 pub mod problem;
 pub mod solver;

@@ -142,7 +142,7 @@ impl Problem {
 
     /// Total cost `Σ ρ(rᵀΩr)` (g2o's "chi2" when no kernel is set).
     pub fn cost(&self) -> f64 {
-        cost_of(&self.entries, &self.values)
+        cost_of(&self.entries, &self.values, 1)
     }
 
     /// Cost of each factor, `ρ(rᵀΩr)`, e.g. to find outliers.
@@ -155,9 +155,16 @@ impl Problem {
     }
 }
 
-pub(crate) fn cost_of(entries: &[Entry], values: &Values) -> f64 {
-    let mut r = Vec::new();
-    entries.iter().map(|e| entry_cost(e, values, &mut r)).sum()
+/// Total cost, summed over `workers` equal runs of factors on as many threads.
+pub(crate) fn cost_of(entries: &[Entry], values: &Values, workers: usize) -> f64 {
+    let chunk = entries.len().div_ceil(workers.max(1)).max(1);
+    let parts = crate::parallel::run(entries.chunks(chunk).collect(), |part| {
+        let mut r = Vec::new();
+        part.iter()
+            .map(|e| entry_cost(e, values, &mut r))
+            .sum::<f64>()
+    });
+    parts.iter().sum()
 }
 
 fn entry_cost(e: &Entry, values: &Values, r: &mut Vec<f64>) -> f64 {
@@ -165,8 +172,13 @@ fn entry_cost(e: &Entry, values: &Values, r: &mut Vec<f64>) -> f64 {
     r.clear();
     r.resize(m, 0.0);
     e.factor.evaluate(values, r, None);
-    e.information.whiten(r);
-    let s = r.iter().map(|v| v * v).sum();
+    let s = match e.information.isotropic_scale() {
+        Some(scale) => scale * scale * r.iter().map(|v| v * v).sum::<f64>(),
+        None => {
+            e.information.whiten(r);
+            r.iter().map(|v| v * v).sum()
+        }
+    };
     match e.kernel {
         Some(k) => k.evaluate(s).0,
         None => s,
@@ -195,17 +207,21 @@ impl Linearized {
             &mut self.residual,
             Some(DMatrixViewMut::from_slice(&mut self.jacobian, m, n)),
         );
-        e.information.whiten(&mut self.residual);
-        for col in self.jacobian.chunks_exact_mut(m) {
-            e.information.whiten(col);
+        // Whitening by `R = s·I` is folded into the robust weight: one pass instead of two.
+        let scale = e.information.isotropic_scale();
+        if scale.is_none() {
+            e.information.whiten(&mut self.residual);
+            for col in self.jacobian.chunks_exact_mut(m) {
+                e.information.whiten(col);
+            }
         }
-        let s: f64 = self.residual.iter().map(|v| v * v).sum();
+        let s = scale.map_or(1.0, |s| s * s) * self.residual.iter().map(|v| v * v).sum::<f64>();
         let (cost, weight) = match e.kernel {
             Some(k) => k.evaluate(s),
             None => (s, 1.0),
         };
-        if weight != 1.0 {
-            let w = weight.max(0.0).sqrt();
+        let w = scale.unwrap_or(1.0) * weight.max(0.0).sqrt();
+        if w != 1.0 {
             self.residual.iter_mut().for_each(|v| *v *= w);
             self.jacobian.iter_mut().for_each(|v| *v *= w);
         }

@@ -35,6 +35,9 @@ pub struct Options {
     /// Removes free points that no factor shares with another point (bundle adjustment's map
     /// points) by the Schur complement before the sparse Cholesky.
     pub eliminate_points: bool,
+    /// Threads for large problems (0: one per core). Results are identical from run to run
+    /// for a given count, but differ in the last bits between counts.
+    pub threads: usize,
 }
 
 impl Default for Options {
@@ -49,6 +52,7 @@ impl Default for Options {
             max_rejections: 12,
             time_limit: None,
             eliminate_points: true,
+            threads: 0,
         }
     }
 }
@@ -97,6 +101,8 @@ pub struct Report {
     /// Points removed by the Schur complement, and the size of the system left to factor.
     pub eliminated_points: usize,
     pub reduced_dim: usize,
+    /// Threads that worked on the problem (1 for small ones).
+    pub threads: usize,
     pub total_time: Duration,
 }
 
@@ -131,18 +137,23 @@ impl Solver {
         let start = Instant::now();
         let opts = self.options.clone();
         let mut analysis_time = Duration::ZERO;
-        let layout = (problem.layout_version(), opts.eliminate_points);
+        let threads = match opts.threads {
+            0 => std::thread::available_parallelism().map_or(1, |n| n.get()),
+            n => n,
+        };
+        let layout = (problem.layout_version(), opts.eliminate_points, threads);
         if self.system.as_ref().map(|s| s.layout()) != Some(layout) {
             let t = Instant::now();
             self.system = Some(
-                NormalEquations::analyse(problem, opts.eliminate_points)
+                NormalEquations::analyse(problem, opts.eliminate_points, threads)
                     .map_err(|e| SolveError::Analysis(e.to_string()))?,
             );
             analysis_time = t.elapsed();
         }
         let system = self.system.as_mut().expect("analysed above");
         let entries = &problem.entries;
-        let initial_cost = cost_of(entries, &problem.values);
+        let workers = system.workers();
+        let initial_cost = cost_of(entries, &problem.values, workers);
         if !initial_cost.is_finite() {
             return Err(SolveError::NonFiniteInitialCost(initial_cost));
         }
@@ -154,6 +165,7 @@ impl Solver {
             analysis_time,
             eliminated_points: system.eliminated(),
             reduced_dim: system.dim() - 3 * system.eliminated(),
+            threads: workers,
             total_time: Duration::ZERO,
         };
         if system.dim() == 0 || entries.is_empty() {
@@ -223,7 +235,7 @@ impl Solver {
                     let step_norm = delta.iter().map(|v| v * v).sum::<f64>().sqrt();
                     it.step_norm = step_norm;
                     apply_step(&problem.values, system.offsets(), &delta, &mut candidate);
-                    let new_cost = cost_of(entries, &candidate);
+                    let new_cost = cost_of(entries, &candidate, workers);
                     it.tried_cost = new_cost;
                     let predicted = system.predicted_decrease(damping, &delta);
                     let actual = cost - new_cost;

@@ -132,3 +132,57 @@ fn the_schur_complement_changes_nothing_but_speed() {
     assert_eq!(report.reduced_dim, 0);
     assert!(report.final_cost <= report.initial_cost);
 }
+
+/// Runs the same solve on one thread and on `threads`, and checks both take the same steps.
+fn same_on_threads(
+    mut one: vsgraphs_sgraph::Problem,
+    mut many: vsgraphs_sgraph::Problem,
+    threads: usize,
+    eliminate_points: bool,
+) {
+    let options = |threads| Options {
+        eliminate_points,
+        threads,
+        max_iterations: 4,
+        ..Options::default()
+    };
+    let a = Solver::new(options(1)).solve(&mut one).unwrap();
+    let b = Solver::new(options(threads)).solve(&mut many).unwrap();
+    assert_eq!((a.threads, b.threads), (1, threads));
+    assert_eq!(a.iterations.len(), b.iterations.len());
+    for (x, y) in a.iterations.iter().zip(&b.iterations) {
+        assert_eq!(x.accepted, y.accepted, "iteration {}", x.iteration);
+        assert!(
+            (x.tried_cost - y.tried_cost).abs() <= 1e-9 * y.tried_cost,
+            "iteration {}: {} vs {}",
+            x.iteration,
+            x.tried_cost,
+            y.tried_cost
+        );
+    }
+}
+
+#[test]
+fn threads_share_the_work_without_changing_the_steps() {
+    // Big enough to be split (several thousand factors), with and without elimination, and an
+    // S-Graph whose walls, markers and odometry hold no eliminated point.
+    let config = BundleConfig {
+        keyframes: 10,
+        points: 1500,
+        observations_per_point: 4,
+        ..BundleConfig::default()
+    };
+    for (threads, eliminate) in [(2, true), (3, true), (2, false)] {
+        let one = bundle_scene(&config, 5).problem;
+        let many = bundle_scene(&config, 5).problem;
+        same_on_threads(one, many, threads, eliminate);
+    }
+    let building = vsgraphs_sgraph::testing::BuildingConfig {
+        points_per_wall: 200,
+        ..Default::default()
+    };
+    let one = vsgraphs_sgraph::testing::building_scene(&building, 2).problem;
+    let many = vsgraphs_sgraph::testing::building_scene(&building, 2).problem;
+    assert!(one.num_factors() >= 4000, "{}", one.num_factors());
+    same_on_threads(one, many, 2, true);
+}

@@ -1,0 +1,366 @@
+//! Laying out the normal equations of a problem: which variables are eliminated, the sparsity
+//! of `S`, where each factor's blocks land, how the work is shared among threads, and the
+//! symbolic Cholesky factorisation.
+
+use super::{
+    Coupling, ElimSlot, LinearError, NormalEquations, Private, SchurPair, Scratch, Share, Slot,
+    Structure, DENSE_LIMIT, PARALLEL_MIN_FACTORS,
+};
+use crate::problem::Problem;
+use crate::values::{Kind, VarId};
+use faer::dyn_stack::MemBuffer;
+use faer::sparse::linalg::cholesky::{
+    factorize_symbolic_cholesky, CholeskySymbolicParams, SymmetricOrdering,
+};
+use faer::sparse::SymbolicSparseColMatRef;
+use faer::{Par, Side};
+use nalgebra::Matrix3;
+use std::collections::BTreeMap;
+
+impl NormalEquations {
+    /// Lays out the system of `problem` and analyses its sparsity. With `eliminate`, free points
+    /// of which no factor holds two are removed by the Schur complement. Problems large enough
+    /// are split into `threads` shares.
+    pub fn analyse(
+        problem: &Problem,
+        eliminate: bool,
+        threads: usize,
+    ) -> Result<Self, LinearError> {
+        let values = &problem.values;
+        let entries = &problem.entries;
+        let kind_of = |id: VarId| values.variable(id).expect("checked key").kind();
+        let free = |id| !values.is_fixed(id);
+        // Which variables to eliminate.
+        let mut elim = vec![false; values.len()];
+        if eliminate {
+            for id in values.ids() {
+                elim[id.index()] = free(id) && kind_of(id) == Kind::Point;
+            }
+            for e in entries {
+                let keys = e.factor.keys();
+                if keys.iter().filter(|k| elim[k.index()]).count() > 1 {
+                    for k in keys {
+                        elim[k.index()] = false;
+                    }
+                }
+            }
+        }
+        let mut offset = vec![usize::MAX; values.len()];
+        let mut n = 0;
+        for id in values.ids() {
+            if free(id) && !elim[id.index()] {
+                offset[id.index()] = n;
+                n += kind_of(id).dim();
+            }
+        }
+        let n_reduced = n;
+        let mut elim_index = vec![usize::MAX; values.len()];
+        let mut num_elim = 0;
+        for id in values.ids() {
+            if elim[id.index()] {
+                elim_index[id.index()] = num_elim;
+                offset[id.index()] = n;
+                n += 3;
+                num_elim += 1;
+            }
+        }
+        let is_reduced = |id: VarId| offset[id.index()] != usize::MAX && !elim[id.index()];
+        // The eliminated variable of each factor, if any, and each one's reduced neighbours
+        // (offset, dimension), sorted by offset.
+        let elim_of: Vec<Option<VarId>> = entries
+            .iter()
+            .map(|e| e.factor.keys().iter().copied().find(|k| elim[k.index()]))
+            .collect();
+        let mut neighbours: Vec<Vec<(usize, usize)>> = vec![Vec::new(); num_elim];
+        for (e, l) in entries.iter().zip(&elim_of) {
+            if let Some(l) = l {
+                let nb = &mut neighbours[elim_index[l.index()]];
+                for &r in e.factor.keys().iter().filter(|&&k| is_reduced(k)) {
+                    nb.push((offset[r.index()], kind_of(r).dim()));
+                }
+            }
+        }
+        for nb in &mut neighbours {
+            nb.sort_unstable();
+            nb.dedup();
+        }
+        // Block rows of each block column of S, keyed by column offset then row offset.
+        let mut blocks: BTreeMap<usize, BTreeMap<usize, usize>> = BTreeMap::new();
+        for id in values.ids().filter(|&id| is_reduced(id)) {
+            let off = offset[id.index()];
+            blocks
+                .entry(off)
+                .or_default()
+                .insert(off, kind_of(id).dim());
+        }
+        // After eliminating the points of a bundle adjustment, S is dense or nearly so: a small
+        // one is then laid out dense, which skips finding its pattern pair by pair.
+        let dense = num_elim > 0 && n_reduced <= DENSE_LIMIT;
+        if dense {
+            let reduced: Vec<(usize, usize)> = blocks.iter().map(|(&o, r)| (o, r[&o])).collect();
+            for (i, &(oa, da)) in reduced.iter().enumerate() {
+                for &(ob, _) in &reduced[i..] {
+                    blocks.entry(ob).or_default().insert(oa, da);
+                }
+            }
+        } else {
+            for e in entries {
+                let keys = e.factor.keys();
+                for &a in keys.iter().filter(|&&k| is_reduced(k)) {
+                    for &b in keys.iter().filter(|&&k| is_reduced(k)) {
+                        let (oa, ob) = (offset[a.index()], offset[b.index()]);
+                        if oa <= ob {
+                            blocks.entry(ob).or_default().insert(oa, kind_of(a).dim());
+                        }
+                    }
+                }
+            }
+            for nb in &neighbours {
+                for (i, &(oa, da)) in nb.iter().enumerate() {
+                    for &(ob, _) in &nb[i..] {
+                        blocks.entry(ob).or_default().insert(oa, da);
+                    }
+                }
+            }
+        }
+        // Scalar CSC of the upper triangle, and each block row's prefix within its column.
+        let mut col_ptr = Vec::with_capacity(n_reduced + 1);
+        let mut row_idx = Vec::new();
+        let mut prefix: BTreeMap<(usize, usize), usize> = BTreeMap::new();
+        let mut diag = Vec::with_capacity(n_reduced);
+        col_ptr.push(0);
+        for (&col_off, rows) in &blocks {
+            let col_dim = rows[&col_off];
+            let mut p = 0;
+            for (&row_off, &row_dim) in rows {
+                if !dense {
+                    prefix.insert((row_off, col_off), p);
+                }
+                p += row_dim;
+            }
+            for k in 0..col_dim {
+                for (&row_off, &row_dim) in rows {
+                    let count = if row_off == col_off { k + 1 } else { row_dim };
+                    row_idx.extend(row_off..row_off + count);
+                }
+                diag.push(row_idx.len() - 1);
+                col_ptr.push(row_idx.len());
+            }
+        }
+        // A dense column holds every row from 0, so a block row starts at its own offset.
+        let prefix_of = |row: usize, col: usize| if dense { row } else { prefix[&(row, col)] };
+        // Couplings and Schur pairs of each eliminated variable.
+        let mut coupling_start = Vec::with_capacity(num_elim + 1);
+        let mut couplings = Vec::new();
+        let mut pair_start = Vec::with_capacity(num_elim + 1);
+        let mut pairs = Vec::new();
+        let mut w_len = 0;
+        for nb in &neighbours {
+            coupling_start.push(couplings.len());
+            pair_start.push(pairs.len());
+            let first = couplings.len();
+            for &(off, dim) in nb {
+                couplings.push(Coupling {
+                    offset: off,
+                    dim,
+                    data: w_len,
+                });
+                w_len += 3 * dim;
+            }
+            for i in first..couplings.len() {
+                for j in i..couplings.len() {
+                    let (oi, oj) = (couplings[i].offset, couplings[j].offset);
+                    pairs.push(SchurPair {
+                        i: i as u32,
+                        j: j as u32,
+                        col0: oj,
+                        prefix: prefix_of(oi, oj),
+                    });
+                }
+            }
+        }
+        coupling_start.push(couplings.len());
+        pair_start.push(pairs.len());
+        // The coupling of eliminated variable `e` with the reduced variable at `off`.
+        let coupling_of = |e: usize, off: usize| {
+            let range = coupling_start[e]..coupling_start[e + 1];
+            let found = couplings[range.clone()].binary_search_by_key(&off, |c| c.offset);
+            range.start + found.expect("every neighbour has a coupling")
+        };
+        // Per factor: its reduced slots and its eliminated slots.
+        let mut slot_start = Vec::with_capacity(entries.len() + 1);
+        let mut slots = Vec::new();
+        let mut elim_start = Vec::with_capacity(entries.len() + 1);
+        let mut elim_slots = Vec::new();
+        for e in entries {
+            slot_start.push(slots.len());
+            elim_start.push(elim_slots.len());
+            let keys = e.factor.keys();
+            for (ia, &a) in keys.iter().enumerate() {
+                for (ib, &b) in keys.iter().enumerate() {
+                    let (oa, ob) = (offset[a.index()], offset[b.index()]);
+                    if is_reduced(a) && is_reduced(b) && oa <= ob {
+                        slots.push(Slot {
+                            a: ia as u8,
+                            b: ib as u8,
+                            col0: ob,
+                            prefix: prefix_of(oa, ob),
+                        });
+                    } else if elim[a.index()] && ia == ib {
+                        elim_slots.push(ElimSlot {
+                            l: ia as u8,
+                            r: ia as u8,
+                            target: elim_index[a.index()],
+                        });
+                    } else if elim[a.index()] && is_reduced(b) {
+                        elim_slots.push(ElimSlot {
+                            l: ia as u8,
+                            r: ib as u8,
+                            target: coupling_of(elim_index[a.index()], ob),
+                        });
+                    }
+                }
+            }
+        }
+        slot_start.push(slots.len());
+        elim_start.push(elim_slots.len());
+        let elim_of: Vec<Option<usize>> = elim_of
+            .iter()
+            .map(|l| l.map(|l| elim_index[l.index()]))
+            .collect();
+        let workers = if entries.len() >= PARALLEL_MIN_FACTORS {
+            threads.max(1)
+        } else {
+            1
+        };
+        let shares = share_out(
+            &elim_of,
+            &coupling_start,
+            &couplings,
+            &pair_start,
+            w_len,
+            workers,
+        );
+        let symbolic = {
+            let pattern = SymbolicSparseColMatRef::new_checked(
+                n_reduced, n_reduced, &col_ptr, None, &row_idx,
+            );
+            factorize_symbolic_cholesky(
+                pattern,
+                Side::Upper,
+                SymmetricOrdering::Amd,
+                CholeskySymbolicParams::default(),
+            )
+            .map_err(|e| LinearError::Analysis(format!("{e:?}")))?
+        };
+        let memory = MemBuffer::try_new(
+            symbolic
+                .factorize_numeric_llt_scratch::<f64>(Par::Seq, Default::default())
+                .or(symbolic.solve_in_place_scratch::<f64>(1, Par::Seq)),
+        )
+        .map_err(|_| LinearError::Analysis("out of memory".into()))?;
+        let nnz = row_idx.len();
+        let helpers = (1..shares.len())
+            .map(|_| Private {
+                h: vec![0.0; nnz],
+                g_r: vec![0.0; n_reduced],
+                s: vec![0.0; nnz],
+                rhs: vec![0.0; n_reduced],
+                scratch: Scratch::default(),
+            })
+            .collect();
+        Ok(Self {
+            layout: problem.layout_version(),
+            eliminate,
+            threads,
+            st: Structure {
+                offset,
+                n_reduced,
+                n,
+                col_ptr,
+                row_idx,
+                diag,
+                slot_start,
+                slots,
+                elim_start,
+                elim_slots,
+                coupling_start,
+                couplings,
+                pairs,
+                shares,
+            },
+            h: vec![0.0; nnz],
+            damped: vec![0.0; nnz],
+            g: vec![0.0; n],
+            v: vec![Matrix3::zeros(); num_elim],
+            v_inv: vec![Matrix3::zeros(); num_elim],
+            w: vec![0.0; w_len],
+            y: vec![0.0; w_len],
+            l_values: vec![0.0; symbolic.len_val()],
+            symbolic,
+            memory,
+            scratch: Scratch::default(),
+            helpers,
+        })
+    }
+}
+
+/// Splits the factors into `workers` shares of about equal size. Eliminated variables are cut
+/// into contiguous ranges, each factor holding one goes with it, and the other factors go to
+/// whichever share has the fewest so far.
+fn share_out(
+    elim_of: &[Option<usize>],
+    coupling_start: &[usize],
+    couplings: &[Coupling],
+    pair_start: &[usize],
+    w_len: usize,
+    workers: usize,
+) -> Vec<Share> {
+    let num_elim = coupling_start.len() - 1;
+    let mut count = vec![0usize; num_elim];
+    for e in elim_of.iter().flatten() {
+        count[*e] += 1;
+    }
+    let total: usize = count.iter().sum();
+    // Share t takes eliminated variables bounds[t]..bounds[t + 1].
+    let mut bounds = vec![0];
+    let mut sum = 0;
+    for (e, c) in count.iter().enumerate() {
+        if bounds.len() < workers && sum * workers >= total * bounds.len() && sum > 0 {
+            bounds.push(e);
+        }
+        sum += c;
+    }
+    while bounds.len() <= workers {
+        bounds.push(num_elim);
+    }
+    let data_at = |e: usize| couplings.get(coupling_start[e]).map_or(w_len, |c| c.data);
+    let mut shares: Vec<Share> = bounds
+        .windows(2)
+        .map(|b| Share {
+            factors: Vec::new(),
+            elim: b[0]..b[1],
+            data: data_at(b[0])..data_at(b[1]),
+            pairs: pair_start[b[0]]..pair_start[b[1]],
+        })
+        .collect();
+    let share_of = |e: usize| bounds[1..].partition_point(|&b| b <= e);
+    let mut load: Vec<usize> = shares
+        .iter()
+        .map(|s| count[s.elim.clone()].iter().sum())
+        .collect();
+    for (fi, e) in elim_of.iter().enumerate() {
+        let t = match e {
+            Some(e) => share_of(*e),
+            None => {
+                let t = (0..workers)
+                    .min_by_key(|&t| load[t])
+                    .expect("at least one worker");
+                load[t] += 1;
+                t
+            }
+        };
+        shares[t].factors.push(fi as u32);
+    }
+    shares
+}

@@ -1,0 +1,175 @@
+//! Assembly of `H` and `g`: each factor is linearised, its `JᵀJ` and `Jᵀr` formed, and the
+//! blocks scattered to the places the analysis gave them.
+
+use super::{Scratch, Share, Structure};
+use crate::problem::Entry;
+use crate::values::Values;
+use nalgebra::Matrix3;
+
+/// Where one share's sums go: `H_rr` and `g_r` in full (private to the thread), and the share's
+/// own slices of `g_l`, `V` and `W`.
+pub(super) struct Accumulators<'a> {
+    pub h: &'a mut [f64],
+    pub g_r: &'a mut [f64],
+    pub g_l: &'a mut [f64],
+    pub v: &'a mut [Matrix3<f64>],
+    pub w: &'a mut [f64],
+}
+
+/// Linearises the share's factors into `out` and returns their cost. The arithmetic is the
+/// same on every path (Rust never fuses a multiply and an add by itself), so the AVX2 build
+/// only changes the speed.
+pub(super) fn assemble(
+    st: &Structure,
+    share: &Share,
+    entries: &[Entry],
+    values: &Values,
+    out: Accumulators<'_>,
+    scratch: &mut Scratch,
+) -> f64 {
+    #[cfg(target_arch = "x86_64")]
+    if std::arch::is_x86_feature_detected!("avx2") {
+        // SAFETY: the CPU has just been found to support AVX2.
+        return unsafe { assemble_avx2(st, share, entries, values, out, scratch) };
+    }
+    assemble_portable(st, share, entries, values, out, scratch)
+}
+
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+unsafe fn assemble_avx2(
+    st: &Structure,
+    share: &Share,
+    entries: &[Entry],
+    values: &Values,
+    out: Accumulators<'_>,
+    scratch: &mut Scratch,
+) -> f64 {
+    assemble_portable(st, share, entries, values, out, scratch)
+}
+
+#[inline(always)]
+fn assemble_portable(
+    st: &Structure,
+    share: &Share,
+    entries: &[Entry],
+    values: &Values,
+    out: Accumulators<'_>,
+    scratch: &mut Scratch,
+) -> f64 {
+    let Accumulators { h, g_r, g_l, v, w } = out;
+    let nr = st.n_reduced;
+    let g_l_start = nr + 3 * share.elim.start;
+    let Scratch { lin, jtj, jtr } = scratch;
+    let mut cost = 0.0;
+    for &fi in &share.factors {
+        let fi = fi as usize;
+        let e = &entries[fi];
+        cost += lin.linearize(e, values);
+        let m = e.factor.residual_dim();
+        let n = e.total_dim;
+        // The factor's own JᵀJ (full, column-major) and Jᵀr, then scattered by block.
+        // Both are overwritten in full below.
+        jtj.resize(n * n, 0.0);
+        jtr.resize(n, 0.0);
+        let (jac, r) = (&lin.jacobian[..m * n], &lin.residual[..m]);
+        // The shapes of the common factors: RGB-D and monocular reprojection, relative pose
+        // and prior, marker corners.
+        match (m, n) {
+            (3, 9) => gram::<3, 9>(jac, r, jtj, jtr),
+            (2, 9) => gram::<2, 9>(jac, r, jtj, jtr),
+            (6, 12) => gram::<6, 12>(jac, r, jtj, jtr),
+            (6, 6) => gram::<6, 6>(jac, r, jtj, jtr),
+            (8, 12) => gram::<8, 12>(jac, r, jtj, jtr),
+            _ => gram_dyn(jac, r, n, jtj, jtr),
+        }
+        let keys = e.factor.keys();
+        let kinds = e.factor.kinds();
+        for (ia, &a) in keys.iter().enumerate() {
+            let off = st.offset[a.index()];
+            if off == usize::MAX {
+                continue;
+            }
+            let dim = kinds[ia].dim();
+            let g = if off < nr {
+                &mut g_r[off..off + dim]
+            } else {
+                &mut g_l[off - g_l_start..off - g_l_start + dim]
+            };
+            for (g, x) in g.iter_mut().zip(&jtr[e.columns[ia]..]) {
+                *g += x;
+            }
+        }
+        for slot in &st.slots[st.slot_start[fi]..st.slot_start[fi + 1]] {
+            let (ia, ib) = (slot.a as usize, slot.b as usize);
+            let (ca, cb) = (e.columns[ia], e.columns[ib]);
+            let da = kinds[ia].dim();
+            for k in 0..kinds[ib].dim() {
+                let base = st.col_ptr[slot.col0 + k] + slot.prefix;
+                let rows = if ia == ib { k + 1 } else { da };
+                let src = &jtj[(cb + k) * n + ca..(cb + k) * n + ca + rows];
+                for (h, x) in h[base..base + rows].iter_mut().zip(src) {
+                    *h += x;
+                }
+            }
+        }
+        for s in &st.elim_slots[st.elim_start[fi]..st.elim_start[fi + 1]] {
+            let (cl, cr) = (e.columns[s.l as usize], e.columns[s.r as usize]);
+            if s.l == s.r {
+                let v = &mut v[s.target - share.elim.start];
+                for c in 0..3 {
+                    for rr in 0..3 {
+                        v[(rr, c)] += jtj[(cl + c) * n + cl + rr];
+                    }
+                }
+            } else {
+                let cp = st.couplings[s.target];
+                let at = cp.data - share.data.start;
+                let w = &mut w[at..at + 3 * cp.dim];
+                for c in 0..3 {
+                    let src = &jtj[(cl + c) * n + cr..(cl + c) * n + cr + cp.dim];
+                    for (x, y) in w[c * cp.dim..(c + 1) * cp.dim].iter_mut().zip(src) {
+                        *x += y;
+                    }
+                }
+            }
+        }
+    }
+    cost
+}
+
+/// `JᵀJ` (column-major `N × N`) and `Jᵀr` of a column-major `M × N` Jacobian, sized at compile
+/// time: the rows stay in registers and each column of the square is formed whole and stored
+/// once (twice the products of one triangle, but they vectorise).
+#[inline(always)]
+fn gram<const M: usize, const N: usize>(jac: &[f64], r: &[f64], jtj: &mut [f64], jtr: &mut [f64]) {
+    let rows: [[f64; N]; M] = std::array::from_fn(|k| std::array::from_fn(|c| jac[c * M + k]));
+    let r: [f64; M] = r.try_into().expect("M residuals");
+    for (c, (dst, b)) in jtj.chunks_exact_mut(N).zip(jtr.iter_mut()).enumerate() {
+        let mut col = [0.0; N];
+        let mut g = 0.0;
+        for k in 0..M {
+            let s = rows[k][c];
+            for (x, y) in col.iter_mut().zip(&rows[k]) {
+                *x += y * s;
+            }
+            g += s * r[k];
+        }
+        dst.copy_from_slice(&col);
+        *b = g;
+    }
+}
+
+fn gram_dyn(jac: &[f64], r: &[f64], n: usize, jtj: &mut [f64], jtr: &mut [f64]) {
+    let m = r.len();
+    let column = |i: usize| &jac[i * m..(i + 1) * m];
+    for j in 0..n {
+        let cj = column(j);
+        jtr[j] = super::dot(cj, r);
+        for i in 0..=j {
+            let x = super::dot(column(i), cj);
+            jtj[j * n + i] = x;
+            jtj[i * n + j] = x;
+        }
+    }
+}
