@@ -1,4 +1,7 @@
-//! Evaluation tools behind the `vsgraphs-eval` command: pose-graph optimisation of g2o files
-//! (and, with the simulator, trajectory and semantic scoring).
+//! Evaluation tools behind the `vsgraphs-eval` command: trajectory error as evo computes it
+//! (APE/ATE and RPE on TUM files), and pose-graph optimisation of g2o files.
 
+pub mod metrics;
 pub mod posegraph;
+pub mod score;
+pub mod trajectory;
