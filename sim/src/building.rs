@@ -1,0 +1,383 @@
+//! A building derived from its floor plan: the wall sides of every space, markers hung on them
+//! and beside doors, the doorways, and the centre of every room and corridor. This is the
+//! ground truth the simulator renders and the scores compare against.
+//!
+//! Marker frames follow ArUco: x to the right and y up as the marker is seen, z out of the
+//! wall towards the viewer (so along the wall's normal into its space).
+
+use crate::plan::{Door, FloorPlan, PlanError, SpaceKind};
+use nalgebra::{Isometry3, Matrix3, Rotation3, Translation3, UnitQuaternion, Vector3};
+use serde::Serialize;
+use vsgraphs_sgraph::Plane;
+
+/// One side of a wall, facing into its space: the plane `x[axis] = at`, normal `facing` along
+/// `axis`, spanning `from..to` along the other floor axis.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub(crate) struct Side {
+    axis: usize,
+    at: f64,
+    facing: f64,
+    from: f64,
+    to: f64,
+}
+
+impl Side {
+    fn normal(&self) -> Vector3<f64> {
+        let mut n = Vector3::zeros();
+        n[self.axis] = self.facing;
+        n
+    }
+
+    /// The point on this side at `along` (the other floor axis) and height `z`.
+    fn point(&self, along: f64, z: f64) -> Vector3<f64> {
+        let mut p = Vector3::new(0.0, 0.0, z);
+        p[self.axis] = self.at;
+        p[1 - self.axis] = along;
+        p
+    }
+
+    fn plane(&self) -> Plane {
+        let n = self.normal();
+        Plane::new(n, -n.dot(&self.point(0.0, 0.0))).expect("a unit normal")
+    }
+}
+
+/// The wall sides that bound a space: a room's four (`[x_min, x_max, y_min, y_max]`, the order
+/// `room_centre` takes), a corridor's two long ones.
+fn sides(plan: &FloorPlan, space: usize) -> Vec<Side> {
+    let s = &plan.spaces[space];
+    let side = |axis: usize, at: f64, facing: f64| Side {
+        axis,
+        at,
+        facing,
+        from: s.min[1 - axis],
+        to: s.max[1 - axis],
+    };
+    let x = [side(0, s.min[0], 1.0), side(0, s.max[0], -1.0)];
+    let y = [side(1, s.min[1], 1.0), side(1, s.max[1], -1.0)];
+    match s.kind {
+        SpaceKind::Room => vec![x[0], x[1], y[0], y[1]],
+        // A corridor runs along its longer extent; its long walls are the lines across it.
+        SpaceKind::Corridor if s.max[0] - s.min[0] >= s.max[1] - s.min[1] => y.to_vec(),
+        SpaceKind::Corridor => x.to_vec(),
+    }
+}
+
+/// Every side of a space's rectangle, bounding or not (a door may open in a corridor's end).
+fn all_sides(plan: &FloorPlan, space: usize) -> [Side; 4] {
+    let s = &plan.spaces[space];
+    let side = |axis: usize, at: f64, facing: f64| Side {
+        axis,
+        at,
+        facing,
+        from: s.min[1 - axis],
+        to: s.max[1 - axis],
+    };
+    [
+        side(0, s.min[0], 1.0),
+        side(0, s.max[0], -1.0),
+        side(1, s.min[1], 1.0),
+        side(1, s.max[1], -1.0),
+    ]
+}
+
+const EPS: f64 = 1e-9;
+
+/// The two facing sides (of `between[0]` and `between[1]`) in whose shared wall the door opens.
+pub(crate) fn shared_wall(plan: &FloorPlan, door: &Door) -> Option<(Side, Side)> {
+    let index = |name: &str| plan.spaces.iter().position(|s| s.name == name);
+    let (a, b) = (index(&door.between[0])?, index(&door.between[1])?);
+    let half = door.width / 2.0;
+    let holds = |s: &Side| {
+        let along = door.at[1 - s.axis];
+        (door.at[s.axis] - s.at).abs() < EPS
+            && along - half >= s.from - EPS
+            && along + half <= s.to + EPS
+    };
+    for sa in all_sides(plan, a).into_iter().filter(holds) {
+        for sb in all_sides(plan, b).into_iter().filter(holds) {
+            if sa.axis == sb.axis && sa.facing == -sb.facing {
+                return Some((sa, sb));
+            }
+        }
+    }
+    None
+}
+
+/// A marker of the building.
+#[derive(Clone, Debug, Serialize)]
+pub struct Marker {
+    pub id: u32,
+    pub side: f64,
+    #[serde(serialize_with = "pose_json")]
+    pub world_from_marker: Isometry3<f64>,
+    /// The wall it hangs on (every marker hangs on one).
+    pub wall: usize,
+    /// The doorway it labels, if it is a door marker.
+    pub doorway: Option<usize>,
+}
+
+/// A wall side that bounds a room or corridor.
+#[derive(Clone, Debug, Serialize)]
+pub struct Wall {
+    pub space: usize,
+    /// `n·x + d = 0`, `n` pointing into the space.
+    #[serde(serialize_with = "plane_json")]
+    pub plane: Plane,
+    /// Its wall markers (not door markers).
+    pub markers: Vec<u32>,
+}
+
+#[derive(Clone, Debug, Serialize)]
+pub struct Doorway {
+    pub name: String,
+    pub between: [usize; 2],
+    /// The marker that names the door (the one in `between[0]`), and both of its markers.
+    pub marker: u32,
+    pub markers: Vec<u32>,
+    /// Middle of the opening; z from `between[0]` into `between[1]`, y up.
+    #[serde(serialize_with = "pose_json")]
+    pub world_from_doorway: Isometry3<f64>,
+}
+
+#[derive(Clone, Debug, Serialize)]
+pub struct SpaceTruth {
+    pub name: String,
+    pub kind: SpaceKind,
+    /// Bounding walls: a room's `[x_min, x_max, y_min, y_max]`, a corridor's two.
+    pub walls: Vec<usize>,
+    /// As defined in the reference facts: for a room, where its two mid-planes cross at the
+    /// height of its markers; for a corridor, its markers' centre projected on its mid-plane.
+    pub centre: [f64; 3],
+    pub door_markers: Vec<u32>,
+}
+
+/// The ground truth of a building.
+#[derive(Clone, Debug, Serialize)]
+pub struct Building {
+    pub name: String,
+    pub markers: Vec<Marker>,
+    pub walls: Vec<Wall>,
+    pub doorways: Vec<Doorway>,
+    pub spaces: Vec<SpaceTruth>,
+}
+
+/// Clearance between a door's opening and a marker's edge, metres.
+const DOOR_CLEARANCE: f64 = 0.15;
+
+impl Building {
+    pub fn from_plan(plan: &FloorPlan) -> Result<Self, PlanError> {
+        plan.validate()?;
+        let style = &plan.markers;
+        let half = style.side / 2.0;
+        let mut markers = Vec::new();
+        let mut walls = Vec::new();
+        let mut spaces = Vec::new();
+        let mut next_id = 0u32;
+        let marker_pose = |side: &Side, along: f64| {
+            let z = side.normal();
+            let y = Vector3::z();
+            let rotation =
+                Rotation3::from_matrix_unchecked(Matrix3::from_columns(&[y.cross(&z), y, z]));
+            Isometry3::from_parts(
+                Translation3::from(side.point(along, style.height)),
+                UnitQuaternion::from_rotation_matrix(&rotation),
+            )
+        };
+        // Doors opening in a side, as (centre along the wall, half width).
+        let openings = |side: &Side| -> Vec<(f64, f64)> {
+            plan.doors
+                .iter()
+                .filter_map(|d| {
+                    let (sa, sb) = shared_wall(plan, d)?;
+                    (sa == *side || sb == *side).then(|| (d.at[1 - side.axis], d.width / 2.0))
+                })
+                .collect()
+        };
+        let free = |side: &Side, along: f64| {
+            along - half >= side.from + DOOR_CLEARANCE
+                && along + half <= side.to - DOOR_CLEARANCE
+                && openings(side)
+                    .iter()
+                    .all(|(c, w)| (along - c).abs() >= w + DOOR_CLEARANCE + half)
+        };
+        for (si, space) in plan.spaces.iter().enumerate() {
+            let mut wall_ids = Vec::new();
+            for side in sides(plan, si) {
+                // The middle of the wall, or a quarter of the way from either end.
+                let span = side.to - side.from;
+                let along = [0.5, 0.25, 0.75, 0.125, 0.875]
+                    .iter()
+                    .map(|f| side.from + f * span)
+                    .find(|&a| free(&side, a))
+                    .unwrap_or(side.from + 0.5 * span);
+                let wall = walls.len();
+                markers.push(Marker {
+                    id: next_id,
+                    side: style.side,
+                    world_from_marker: marker_pose(&side, along),
+                    wall,
+                    doorway: None,
+                });
+                walls.push(Wall {
+                    space: si,
+                    plane: side.plane(),
+                    markers: vec![next_id],
+                });
+                next_id += 1;
+                wall_ids.push(wall);
+            }
+            // Where the two mid-planes cross (room), or the mid-plane (corridor), at the
+            // markers' centre.
+            let anchor = wall_ids
+                .iter()
+                .flat_map(|&w| &walls[w].markers)
+                .map(|&id| markers[id as usize].world_from_marker.translation.vector)
+                .sum::<Vector3<f64>>()
+                / wall_ids.len() as f64;
+            let mut centre = anchor;
+            for side in sides(plan, si) {
+                centre[side.axis] = 0.5 * (space.min[side.axis] + space.max[side.axis]);
+            }
+            spaces.push(SpaceTruth {
+                name: space.name.clone(),
+                kind: space.kind,
+                walls: wall_ids,
+                centre: centre.into(),
+                door_markers: Vec::new(),
+            });
+        }
+        let mut doorways = Vec::new();
+        for (di, door) in plan.doors.iter().enumerate() {
+            let (sa, sb) = shared_wall(plan, door).expect("validated");
+            let index = |name: &str| {
+                plan.spaces
+                    .iter()
+                    .position(|s| s.name == name)
+                    .expect("validated")
+            };
+            let between = [index(&door.between[0]), index(&door.between[1])];
+            let mut ids = Vec::new();
+            for (side, space) in [(sa, between[0]), (sb, between[1])] {
+                // Beside the frame, on whichever side has room.
+                let offset = door.width / 2.0 + DOOR_CLEARANCE + half;
+                let centre = door.at[1 - side.axis];
+                let along = [centre + offset, centre - offset]
+                    .into_iter()
+                    .find(|&a| a - half >= side.from && a + half <= side.to)
+                    .unwrap_or(centre + offset);
+                // The wall it hangs on: the space's bounding wall on this line, else a wall
+                // entity of its own (a corridor's end).
+                let wall = spaces[space]
+                    .walls
+                    .iter()
+                    .copied()
+                    .find(|&w| {
+                        let p = &walls[w].plane;
+                        (p.normal.into_inner() - side.normal()).norm() < EPS
+                            && (p.offset - side.plane().offset).abs() < EPS
+                    })
+                    .unwrap_or_else(|| {
+                        walls.push(Wall {
+                            space,
+                            plane: side.plane(),
+                            markers: Vec::new(),
+                        });
+                        walls.len() - 1
+                    });
+                markers.push(Marker {
+                    id: next_id,
+                    side: style.side,
+                    world_from_marker: marker_pose(&side, along),
+                    wall,
+                    doorway: Some(di),
+                });
+                spaces[space].door_markers.push(next_id);
+                ids.push(next_id);
+                next_id += 1;
+            }
+            let z = -sa.normal();
+            let y = Vector3::z();
+            let rotation =
+                Rotation3::from_matrix_unchecked(Matrix3::from_columns(&[y.cross(&z), y, z]));
+            let mut at = sa.point(door.at[1 - sa.axis], door.height / 2.0);
+            at[sa.axis] = sa.at;
+            doorways.push(Doorway {
+                name: door.name.clone(),
+                between,
+                marker: ids[0],
+                markers: ids,
+                world_from_doorway: Isometry3::from_parts(
+                    Translation3::from(at),
+                    UnitQuaternion::from_rotation_matrix(&rotation),
+                ),
+            });
+        }
+        Ok(Self {
+            name: plan.name.clone(),
+            markers,
+            walls,
+            doorways,
+            spaces,
+        })
+    }
+
+    /// The semantic dictionary in the reference's version-1 JSON: per room or corridor its
+    /// wall markers (one list of 4 for a room, of 2 for a corridor) and door markers; per door
+    /// its naming marker.
+    pub fn dictionary_v1(&self) -> serde_json::Value {
+        let rooms: Vec<serde_json::Value> = self
+            .spaces
+            .iter()
+            .map(|s| {
+                let wall_markers: Vec<u32> = s
+                    .walls
+                    .iter()
+                    .flat_map(|&w| self.walls[w].markers.iter().copied())
+                    .collect();
+                serde_json::json!({
+                    "name": s.name,
+                    "markers": [wall_markers],
+                    "doorMarkers": s.door_markers,
+                })
+            })
+            .collect();
+        let doors: Vec<serde_json::Value> = self
+            .doorways
+            .iter()
+            .map(|d| serde_json::json!({"name": d.name, "marker": d.marker}))
+            .collect();
+        serde_json::json!({"rooms": rooms, "doors": doors})
+    }
+
+    pub fn ground_truth_json(&self) -> String {
+        serde_json::to_string_pretty(self).expect("ground truth serialises")
+    }
+}
+
+fn pose_json<S: serde::Serializer>(pose: &Isometry3<f64>, s: S) -> Result<S::Ok, S::Error> {
+    let q = pose.rotation.quaternion();
+    #[derive(Serialize)]
+    struct Pose {
+        translation: [f64; 3],
+        quaternion_xyzw: [f64; 4],
+    }
+    Pose {
+        translation: pose.translation.vector.into(),
+        quaternion_xyzw: [q.i, q.j, q.k, q.w],
+    }
+    .serialize(s)
+}
+
+fn plane_json<S: serde::Serializer>(plane: &Plane, s: S) -> Result<S::Ok, S::Error> {
+    #[derive(Serialize)]
+    struct P {
+        normal: [f64; 3],
+        offset: f64,
+    }
+    P {
+        normal: plane.normal.into_inner().into(),
+        offset: plane.offset,
+    }
+    .serialize(s)
+}

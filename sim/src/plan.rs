@@ -1,0 +1,187 @@
+//! The floor plan format (JSON): rooms and corridors as axis-aligned rectangles on the floor,
+//! doorways between them, and how markers are placed. World frame: z up, the floor at z = 0,
+//! metres.
+//!
+//! ```json
+//! {
+//!   "name": "seq06",
+//!   "wall_height": 2.6,
+//!   "markers": { "side": 0.08, "height": 1.2, "dictionary": "DICT_4X4_100" },
+//!   "spaces": [
+//!     { "name": "Lab", "kind": "room", "min": [0, 0], "max": [4, 5] },
+//!     { "name": "Corridor", "kind": "corridor", "min": [4, 0], "max": [14, 2] }
+//!   ],
+//!   "doors": [ { "name": "Lab door", "between": ["Lab", "Corridor"], "at": [4, 1] } ]
+//! }
+//! ```
+//!
+//! A room is bounded by its four walls; a corridor by its two long walls (its ends are open).
+//! A door's `at` is the middle of its opening, on the wall line the two spaces share.
+
+use serde::{Deserialize, Serialize};
+use thiserror::Error;
+
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct FloorPlan {
+    pub name: String,
+    #[serde(default = "defaults::wall_height")]
+    pub wall_height: f64,
+    #[serde(default)]
+    pub markers: MarkerStyle,
+    pub spaces: Vec<Space>,
+    #[serde(default)]
+    pub doors: Vec<Door>,
+}
+
+/// How markers are made and hung.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct MarkerStyle {
+    /// Side length, metres (the paper's dataset: 8 cm).
+    pub side: f64,
+    /// Height of a marker's centre above the floor, metres.
+    pub height: f64,
+    /// OpenCV predefined dictionary the ids come from.
+    pub dictionary: String,
+}
+
+impl Default for MarkerStyle {
+    fn default() -> Self {
+        Self {
+            side: 0.08,
+            height: 1.2,
+            dictionary: "DICT_4X4_100".into(),
+        }
+    }
+}
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum SpaceKind {
+    Room,
+    Corridor,
+}
+
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Space {
+    pub name: String,
+    pub kind: SpaceKind,
+    /// Corner with the smallest x and y, metres.
+    pub min: [f64; 2],
+    /// Corner with the largest x and y, metres.
+    pub max: [f64; 2],
+}
+
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Door {
+    pub name: String,
+    /// The two spaces the door joins, by name.
+    pub between: [String; 2],
+    /// Middle of the opening on the shared wall line, metres.
+    pub at: [f64; 2],
+    #[serde(default = "defaults::door_width")]
+    pub width: f64,
+    #[serde(default = "defaults::door_height")]
+    pub height: f64,
+}
+
+mod defaults {
+    pub fn wall_height() -> f64 {
+        2.6
+    }
+    pub fn door_width() -> f64 {
+        0.9
+    }
+    pub fn door_height() -> f64 {
+        2.0
+    }
+}
+
+#[derive(Debug, Error, PartialEq)]
+pub enum PlanError {
+    #[error("the plan is not valid JSON for a floor plan: {0}")]
+    Json(String),
+    #[error("space {0:?}: min must be below max on both axes")]
+    EmptySpace(String),
+    #[error("two spaces are named {0:?}")]
+    DuplicateName(String),
+    #[error("space {a:?} overlaps space {b:?}")]
+    Overlap { a: String, b: String },
+    #[error("door {door:?} names {space:?}, which is not a space of the plan")]
+    UnknownSpace { door: String, space: String },
+    #[error("door {0:?} is not on a wall line that its two spaces share, within both walls")]
+    DoorNotOnSharedWall(String),
+    #[error("{0} must be positive and finite")]
+    NotPositive(String),
+    #[error("markers must hang below the wall's top and above the floor")]
+    MarkerHeight,
+}
+
+impl FloorPlan {
+    pub fn from_json(text: &str) -> Result<Self, PlanError> {
+        let plan: FloorPlan =
+            serde_json::from_str(text).map_err(|e| PlanError::Json(e.to_string()))?;
+        plan.validate()?;
+        Ok(plan)
+    }
+
+    pub fn to_json(&self) -> String {
+        serde_json::to_string_pretty(self).expect("a plan serialises")
+    }
+
+    pub fn space(&self, name: &str) -> Option<&Space> {
+        self.spaces.iter().find(|s| s.name == name)
+    }
+
+    /// Checks what the building derivation relies on.
+    pub fn validate(&self) -> Result<(), PlanError> {
+        let positive = |v: f64, what: &str| {
+            (v.is_finite() && v > 0.0)
+                .then_some(())
+                .ok_or_else(|| PlanError::NotPositive(what.into()))
+        };
+        positive(self.wall_height, "wall_height")?;
+        positive(self.markers.side, "markers.side")?;
+        let half = self.markers.side / 2.0;
+        if self.markers.height - half <= 0.0 || self.markers.height + half >= self.wall_height {
+            return Err(PlanError::MarkerHeight);
+        }
+        for (i, s) in self.spaces.iter().enumerate() {
+            let finite = s.min.iter().chain(&s.max).all(|v| v.is_finite());
+            if !finite || s.min[0] >= s.max[0] || s.min[1] >= s.max[1] {
+                return Err(PlanError::EmptySpace(s.name.clone()));
+            }
+            for t in &self.spaces[..i] {
+                if t.name == s.name {
+                    return Err(PlanError::DuplicateName(s.name.clone()));
+                }
+                let apart = (0..2).any(|k| s.max[k] <= t.min[k] || t.max[k] <= s.min[k]);
+                if !apart {
+                    return Err(PlanError::Overlap {
+                        a: t.name.clone(),
+                        b: s.name.clone(),
+                    });
+                }
+            }
+        }
+        for d in &self.doors {
+            positive(d.width, &format!("door {:?} width", d.name))?;
+            positive(d.height, &format!("door {:?} height", d.name))?;
+            for name in &d.between {
+                if self.space(name).is_none() {
+                    return Err(PlanError::UnknownSpace {
+                        door: d.name.clone(),
+                        space: name.clone(),
+                    });
+                }
+            }
+            if crate::building::shared_wall(self, d).is_none() {
+                return Err(PlanError::DoorNotOnSharedWall(d.name.clone()));
+            }
+        }
+        Ok(())
+    }
+}

@@ -1,0 +1,146 @@
+//! Every built-in scenario gives a consistent ground truth: markers lie on their walls and face
+//! into their spaces, centres agree with the S-Graph's centre formulas, and the v1 dictionary
+//! has the reference's shape.
+use nalgebra::Vector3;
+use vsgraphs_sgraph::factors::room::{corridor_centre, room_centre};
+use vsgraphs_sim::plan::SpaceKind;
+use vsgraphs_sim::scenarios::{scenario, NAMES};
+use vsgraphs_sim::{Building, FloorPlan, PlanError};
+
+#[test]
+fn every_scenario_has_consistent_ground_truth() {
+    for name in NAMES {
+        let plan = scenario(name).unwrap();
+        // The plan survives its own JSON.
+        assert_eq!(FloorPlan::from_json(&plan.to_json()).unwrap(), plan);
+        let b = Building::from_plan(&plan).unwrap();
+        let mut ids: Vec<u32> = b.markers.iter().map(|m| m.id).collect();
+        ids.dedup();
+        assert_eq!(ids.len(), b.markers.len(), "{name}: marker ids are unique");
+        for m in &b.markers {
+            let plane = &b.walls[m.wall].plane;
+            let t = m.world_from_marker.translation.vector;
+            let z = m.world_from_marker.rotation * Vector3::z();
+            assert!(
+                plane.distance(&t).abs() < 1e-12,
+                "{name}: marker {} off its wall",
+                m.id
+            );
+            assert!(
+                (z - plane.normal.into_inner()).norm() < 1e-12,
+                "{name}: marker {} faces away",
+                m.id
+            );
+            assert!((t.z - plan.markers.height).abs() < 1e-12);
+        }
+        for (si, s) in b.spaces.iter().enumerate() {
+            let planes: Vec<_> = s.walls.iter().map(|&w| &b.walls[w].plane).collect();
+            let markers: Vec<Vector3<f64>> = s
+                .walls
+                .iter()
+                .flat_map(|&w| &b.walls[w].markers)
+                .map(|&id| b.markers[id as usize].world_from_marker.translation.vector)
+                .collect();
+            let anchor = markers.iter().sum::<Vector3<f64>>() / markers.len() as f64;
+            let formula = match s.kind {
+                SpaceKind::Room => {
+                    room_centre([planes[0], planes[1], planes[2], planes[3]], &anchor)
+                }
+                SpaceKind::Corridor => corridor_centre([planes[0], planes[1]], &anchor),
+            }
+            .unwrap();
+            let centre = Vector3::from(s.centre);
+            assert!(
+                (formula - centre).norm() < 1e-9,
+                "{name}: {} centre {centre} vs {formula}",
+                s.name
+            );
+            // The centre is inside the space's rectangle.
+            let r = &plan.spaces[si];
+            assert!((0..2).all(|k| r.min[k] < centre[k] && centre[k] < r.max[k]));
+            assert_eq!(s.walls.len(), if s.kind == SpaceKind::Room { 4 } else { 2 });
+        }
+        for d in &b.doorways {
+            assert_eq!(d.markers.len(), 2);
+            for &id in &d.markers {
+                assert_eq!(
+                    b.markers[id as usize].doorway,
+                    Some(b.doorways.iter().position(|x| x.name == d.name).unwrap())
+                );
+            }
+        }
+        check_dictionary(name, &b);
+    }
+}
+
+/// The v1 dictionary has the keys of the reference's real files, a list of 4 wall markers per
+/// room and 2 per corridor, and names every door marker of the building once.
+fn check_dictionary(name: &str, b: &Building) {
+    let dict = b.dictionary_v1();
+    let rooms = dict["rooms"].as_array().unwrap();
+    assert_eq!(rooms.len(), b.spaces.len());
+    let mut door_markers = 0;
+    for (room, s) in rooms.iter().zip(&b.spaces) {
+        let mut keys: Vec<&String> = room.as_object().unwrap().keys().collect();
+        keys.sort();
+        assert_eq!(keys, ["doorMarkers", "markers", "name"]);
+        let lists = room["markers"].as_array().unwrap();
+        assert_eq!(lists[0].as_array().unwrap().len(), s.walls.len(), "{name}");
+        door_markers += room["doorMarkers"].as_array().unwrap().len();
+    }
+    assert_eq!(door_markers, 2 * b.doorways.len());
+    for door in dict["doors"].as_array().unwrap() {
+        let id = door["marker"].as_u64().unwrap() as usize;
+        assert!(
+            b.markers[id].doorway.is_some(),
+            "{name}: door names a wall marker"
+        );
+    }
+}
+
+#[test]
+fn real_v1_files_have_the_keys_we_write() {
+    let Some(dir) = vsgraphs_sgraph::testing::shared_data("../reference/env_database/v1") else {
+        return;
+    };
+    let text = std::fs::read_to_string(dir.join("ulms_seq01_aerolab.json")).unwrap();
+    let real: serde_json::Value = serde_json::from_str(&text).unwrap();
+    let ours = Building::from_plan(&scenario("seq06").unwrap())
+        .unwrap()
+        .dictionary_v1();
+    let keys = |v: &serde_json::Value| {
+        let mut k: Vec<String> = v.as_object().unwrap().keys().cloned().collect();
+        k.sort();
+        k
+    };
+    assert_eq!(keys(&real), keys(&ours));
+    assert_eq!(keys(&real["rooms"][0]), keys(&ours["rooms"][0]));
+    assert_eq!(keys(&real["doors"][0]), keys(&ours["doors"][0]));
+}
+
+#[test]
+fn broken_plans_are_refused_with_their_reason() {
+    let mut plan = scenario("seq06").unwrap();
+    plan.doors[0].at = [4.0, 4.0]; // on the lab's wall, beyond the corridor's
+    assert_eq!(
+        Building::from_plan(&plan).unwrap_err(),
+        PlanError::DoorNotOnSharedWall("Lab door".into())
+    );
+    let mut plan = scenario("seq06").unwrap();
+    plan.spaces[1].min = [3.0, 0.0];
+    assert!(matches!(
+        Building::from_plan(&plan),
+        Err(PlanError::Overlap { .. })
+    ));
+    let mut plan = scenario("seq06").unwrap();
+    plan.doors[0].between[1] = "Kitchen".into();
+    assert!(matches!(
+        plan.validate(),
+        Err(PlanError::UnknownSpace { .. })
+    ));
+    let err = FloorPlan::from_json(r#"{"name": "x", "spaces": [], "colour": 1}"#).unwrap_err();
+    assert!(err.to_string().contains("unknown field `colour`"), "{err}");
+    let mut plan = scenario("seq06").unwrap();
+    plan.markers.height = 2.59;
+    assert_eq!(plan.validate(), Err(PlanError::MarkerHeight));
+}
