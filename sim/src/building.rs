@@ -42,28 +42,8 @@ impl Side {
     }
 }
 
-/// The wall sides that bound a space: a room's four (`[x_min, x_max, y_min, y_max]`, the order
-/// `room_centre` takes), a corridor's two long ones.
-fn sides(plan: &FloorPlan, space: usize) -> Vec<Side> {
-    let s = &plan.spaces[space];
-    let side = |axis: usize, at: f64, facing: f64| Side {
-        axis,
-        at,
-        facing,
-        from: s.min[1 - axis],
-        to: s.max[1 - axis],
-    };
-    let x = [side(0, s.min[0], 1.0), side(0, s.max[0], -1.0)];
-    let y = [side(1, s.min[1], 1.0), side(1, s.max[1], -1.0)];
-    match s.kind {
-        SpaceKind::Room => vec![x[0], x[1], y[0], y[1]],
-        // A corridor runs along its longer extent; its long walls are the lines across it.
-        SpaceKind::Corridor if s.max[0] - s.min[0] >= s.max[1] - s.min[1] => y.to_vec(),
-        SpaceKind::Corridor => x.to_vec(),
-    }
-}
-
-/// Every side of a space's rectangle, bounding or not (a door may open in a corridor's end).
+/// Every side of a space's rectangle, `[x_min, x_max, y_min, y_max]`, bounding or not (a door
+/// may open in a corridor's end).
 fn all_sides(plan: &FloorPlan, space: usize) -> [Side; 4] {
     let s = &plan.spaces[space];
     let side = |axis: usize, at: f64, facing: f64| Side {
@@ -79,6 +59,19 @@ fn all_sides(plan: &FloorPlan, space: usize) -> [Side; 4] {
         side(1, s.min[1], 1.0),
         side(1, s.max[1], -1.0),
     ]
+}
+
+/// The wall sides that bound a space: a room's four (in the order `room_centre` takes), a
+/// corridor's two long ones.
+fn sides(plan: &FloorPlan, space: usize) -> Vec<Side> {
+    let s = &plan.spaces[space];
+    let all = all_sides(plan, space);
+    match s.kind {
+        SpaceKind::Room => all.to_vec(),
+        // A corridor runs along its longer extent; its long walls are the lines across it.
+        SpaceKind::Corridor if s.max[0] - s.min[0] >= s.max[1] - s.min[1] => all[2..].to_vec(),
+        SpaceKind::Corridor => all[..2].to_vec(),
+    }
 }
 
 const EPS: f64 = 1e-9;
@@ -300,8 +293,7 @@ impl Building {
             let y = Vector3::z();
             let rotation =
                 Rotation3::from_matrix_unchecked(Matrix3::from_columns(&[y.cross(&z), y, z]));
-            let mut at = sa.point(door.at[1 - sa.axis], door.height / 2.0);
-            at[sa.axis] = sa.at;
+            let at = sa.point(door.at[1 - sa.axis], door.height / 2.0);
             doorways.push(Doorway {
                 name: door.name.clone(),
                 between,
