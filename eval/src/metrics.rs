@@ -10,7 +10,7 @@
 //!   the median of an even count is the mean of the middle two.
 
 use crate::trajectory::Trajectory;
-use nalgebra::{Isometry3, Matrix3, UnitQuaternion, Vector3};
+use nalgebra::{Isometry3, Matrix3, Rotation3, UnitQuaternion, Vector3};
 use serde::Serialize;
 use thiserror::Error;
 
@@ -66,7 +66,10 @@ impl Similarity {
 
     /// The pose moved by this transform: its position mapped, its rotation turned.
     pub fn apply(&self, pose: &Isometry3<f64>) -> Isometry3<f64> {
-        let r = UnitQuaternion::from_matrix(&self.rotation);
+        // Umeyama's R is orthonormal to rounding, so the closed-form conversion suffices (the
+        // iterative `from_matrix` would only repeat it).
+        let r =
+            UnitQuaternion::from_rotation_matrix(&Rotation3::from_matrix_unchecked(self.rotation));
         Isometry3::from_parts(
             (self.scale * (self.rotation * pose.translation.vector) + self.translation).into(),
             r * pose.rotation,

@@ -168,13 +168,9 @@ impl Building {
         let mut spaces = Vec::new();
         let mut next_id = 0u32;
         let marker_pose = |side: &Side, along: f64| {
-            let z = side.normal();
-            let y = Vector3::z();
-            let rotation =
-                Rotation3::from_matrix_unchecked(Matrix3::from_columns(&[y.cross(&z), y, z]));
             Isometry3::from_parts(
                 Translation3::from(side.point(along, style.height)),
-                UnitQuaternion::from_rotation_matrix(&rotation),
+                upright_facing(&side.normal()),
             )
         };
         // Doors opening in a side, as (centre along the wall, half width).
@@ -289,10 +285,6 @@ impl Building {
                 ids.push(next_id);
                 next_id += 1;
             }
-            let z = -sa.normal();
-            let y = Vector3::z();
-            let rotation =
-                Rotation3::from_matrix_unchecked(Matrix3::from_columns(&[y.cross(&z), y, z]));
             let at = sa.point(door.at[1 - sa.axis], door.height / 2.0);
             doorways.push(Doorway {
                 name: door.name.clone(),
@@ -301,7 +293,7 @@ impl Building {
                 markers: ids,
                 world_from_doorway: Isometry3::from_parts(
                     Translation3::from(at),
-                    UnitQuaternion::from_rotation_matrix(&rotation),
+                    upright_facing(&-sa.normal()),
                 ),
             });
         }
@@ -345,6 +337,14 @@ impl Building {
     pub fn ground_truth_json(&self) -> String {
         serde_json::to_string_pretty(self).expect("ground truth serialises")
     }
+}
+
+/// The rotation of a frame whose z axis is the horizontal unit vector `z` and whose y axis is
+/// up: a marker's on a wall, a doorway's across its opening.
+fn upright_facing(z: &Vector3<f64>) -> UnitQuaternion<f64> {
+    let y = Vector3::z();
+    let columns = Matrix3::from_columns(&[y.cross(z), y, *z]);
+    UnitQuaternion::from_rotation_matrix(&Rotation3::from_matrix_unchecked(columns))
 }
 
 fn pose_json<S: serde::Serializer>(pose: &Isometry3<f64>, s: S) -> Result<S::Ok, S::Error> {

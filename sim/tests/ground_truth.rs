@@ -62,6 +62,15 @@ fn every_scenario_has_consistent_ground_truth() {
         }
         for d in &b.doorways {
             assert_eq!(d.markers.len(), 2);
+            // The doorway's z axis leads from its first space into its second, y is up.
+            let z = d.world_from_doorway.rotation * Vector3::z();
+            let y = d.world_from_doorway.rotation * Vector3::y();
+            let [a, c] = d.between.map(|s| Vector3::from(b.spaces[s].centre));
+            assert!(
+                z.dot(&(c - a)) > 0.0 && (y - Vector3::z()).norm() < 1e-12,
+                "{name}: {}",
+                d.name
+            );
             for &id in &d.markers {
                 assert_eq!(
                     b.markers[id as usize].doorway,
