@@ -14,11 +14,11 @@ use vsgraphs_sgraph::Plane;
 /// `axis`, spanning `from..to` along the other floor axis.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub(crate) struct Side {
-    axis: usize,
-    at: f64,
-    facing: f64,
-    from: f64,
-    to: f64,
+    pub(crate) axis: usize,
+    pub(crate) at: f64,
+    pub(crate) facing: f64,
+    pub(crate) from: f64,
+    pub(crate) to: f64,
 }
 
 impl Side {
@@ -44,7 +44,7 @@ impl Side {
 
 /// Every side of a space's rectangle, `[x_min, x_max, y_min, y_max]`, bounding or not (a door
 /// may open in a corridor's end).
-fn all_sides(plan: &FloorPlan, space: usize) -> [Side; 4] {
+pub(crate) fn all_sides(plan: &FloorPlan, space: usize) -> [Side; 4] {
     let s = &plan.spaces[space];
     let side = |axis: usize, at: f64, facing: f64| Side {
         axis,
@@ -156,7 +156,7 @@ pub struct Building {
 }
 
 /// Clearance between a door's opening and a marker's edge, metres.
-const DOOR_CLEARANCE: f64 = 0.15;
+pub(crate) const DOOR_CLEARANCE: f64 = 0.15;
 
 impl Building {
     pub fn from_plan(plan: &FloorPlan) -> Result<Self, PlanError> {
@@ -167,9 +167,9 @@ impl Building {
         let mut walls = Vec::new();
         let mut spaces = Vec::new();
         let mut next_id = 0u32;
-        let marker_pose = |side: &Side, along: f64| {
+        let marker_pose = |side: &Side, along: f64, height: f64| {
             Isometry3::from_parts(
-                Translation3::from(side.point(along, style.height)),
+                Translation3::from(side.point(along, height)),
                 upright_facing(&side.normal()),
             )
         };
@@ -184,18 +184,25 @@ impl Building {
                 .collect()
         };
         let free = |side: &Side, along: f64| {
-            along - half >= side.from + DOOR_CLEARANCE
-                && along + half <= side.to - DOOR_CLEARANCE
+            along - half >= side.from + DOOR_CLEARANCE - EPS
+                && along + half <= side.to - DOOR_CLEARANCE + EPS
                 && openings(side)
                     .iter()
-                    .all(|(c, w)| (along - c).abs() >= w + DOOR_CLEARANCE + half)
+                    .all(|(c, w)| (along - c).abs() >= w + DOOR_CLEARANCE + half - EPS)
         };
         for (si, space) in plan.spaces.iter().enumerate() {
             let mut wall_ids = Vec::new();
-            for side in sides(plan, si) {
-                // The middle of the wall, or a quarter of the way from either end.
+            for (k, side) in sides(plan, si).into_iter().enumerate() {
+                // The middle of the wall, or a quarter of the way from either end. A corridor's
+                // two markers are staggered, as one rarely hangs opposite another and a robot
+                // walking by can look at one and then the other.
                 let span = side.to - side.from;
-                let along = [0.5, 0.25, 0.75, 0.125, 0.875]
+                let preferred = match (space.kind, k) {
+                    (SpaceKind::Corridor, 0) => 0.4,
+                    (SpaceKind::Corridor, _) => 0.6,
+                    (SpaceKind::Room, _) => 0.5,
+                };
+                let along = [preferred, 0.5, 0.25, 0.75, 0.125, 0.875]
                     .iter()
                     .map(|f| side.from + f * span)
                     .find(|&a| free(&side, a))
@@ -204,7 +211,7 @@ impl Building {
                 markers.push(Marker {
                     id: next_id,
                     side: style.side,
-                    world_from_marker: marker_pose(&side, along),
+                    world_from_marker: marker_pose(&side, along, style.height),
                     wall,
                     doorway: None,
                 });
@@ -248,13 +255,16 @@ impl Building {
             let between = [index(&door.between[0]), index(&door.between[1])];
             let mut ids = Vec::new();
             for (side, space) in [(sa, between[0]), (sb, between[1])] {
-                // Beside the frame, on whichever side has room.
+                // Beside the frame at the markers' height, on whichever side has room; else
+                // centred above the frame (validation made sure it fits under the ceiling).
                 let offset = door.width / 2.0 + DOOR_CLEARANCE + half;
                 let centre = door.at[1 - side.axis];
-                let along = [centre + offset, centre - offset]
+                let (along, height) = [centre + offset, centre - offset]
                     .into_iter()
-                    .find(|&a| a - half >= side.from && a + half <= side.to)
-                    .unwrap_or(centre + offset);
+                    .find(|&a| free(&side, a))
+                    .map_or((centre, door.height + DOOR_CLEARANCE + half), |a| {
+                        (a, style.height)
+                    });
                 // The wall it hangs on: the space's bounding wall on this line, else a wall
                 // entity of its own (a corridor's end).
                 let wall = spaces[space]
@@ -277,7 +287,7 @@ impl Building {
                 markers.push(Marker {
                     id: next_id,
                     side: style.side,
-                    world_from_marker: marker_pose(&side, along),
+                    world_from_marker: marker_pose(&side, along, height),
                     wall,
                     doorway: Some(di),
                 });

@@ -118,6 +118,18 @@ pub enum PlanError {
     NotPositive(String),
     #[error("markers must hang below the wall's top and above the floor")]
     MarkerHeight,
+    #[error("dictionary {0:?} is not one the simulator draws (DICT_4X4_*, DICT_5X5_*, DICT_6X6_* of 50, 100, 250 or 1000)")]
+    UnknownDictionary(String),
+    #[error("the plan needs {needed} markers but {dictionary} holds {holds}")]
+    TooManyMarkers {
+        dictionary: String,
+        needed: usize,
+        holds: usize,
+    },
+    #[error(
+        "door {door:?}: its top, with room for a marker above it, must be below the wall height"
+    )]
+    DoorHeight { door: String },
 }
 
 impl FloorPlan {
@@ -134,6 +146,19 @@ impl FloorPlan {
 
     pub fn space(&self, name: &str) -> Option<&Space> {
         self.spaces.iter().find(|s| s.name == name)
+    }
+
+    /// Markers the building hangs: one per bounding wall side, two per door.
+    pub fn marker_count(&self) -> usize {
+        let walls: usize = self
+            .spaces
+            .iter()
+            .map(|s| match s.kind {
+                SpaceKind::Room => 4,
+                SpaceKind::Corridor => 2,
+            })
+            .sum();
+        walls + 2 * self.doors.len()
     }
 
     /// Checks what the building derivation relies on.
@@ -167,9 +192,18 @@ impl FloorPlan {
                 }
             }
         }
+        let dictionary = crate::aruco::Dictionary::by_name(&self.markers.dictionary)
+            .ok_or_else(|| PlanError::UnknownDictionary(self.markers.dictionary.clone()))?;
         for d in &self.doors {
             positive(d.width, &format!("door {:?} width", d.name))?;
             positive(d.height, &format!("door {:?} height", d.name))?;
+            // A door marker may have to hang above the frame.
+            let above = d.height + crate::building::DOOR_CLEARANCE + self.markers.side;
+            if above >= self.wall_height {
+                return Err(PlanError::DoorHeight {
+                    door: d.name.clone(),
+                });
+            }
             for name in &d.between {
                 if self.space(name).is_none() {
                     return Err(PlanError::UnknownSpace {
@@ -181,6 +215,14 @@ impl FloorPlan {
             if crate::building::shared_wall(self, d).is_none() {
                 return Err(PlanError::DoorNotOnSharedWall(d.name.clone()));
             }
+        }
+        let needed = self.marker_count();
+        if needed > dictionary.markers {
+            return Err(PlanError::TooManyMarkers {
+                dictionary: self.markers.dictionary.clone(),
+                needed,
+                holds: dictionary.markers,
+            });
         }
         Ok(())
     }

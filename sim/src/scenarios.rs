@@ -1,6 +1,10 @@
 //! Built-in buildings modelled on the paper's dataset (seq01–seq06) and one for two robots.
 
+use crate::plan::PlanError;
 use crate::plan::{Door, FloorPlan, MarkerStyle, Space, SpaceKind};
+use crate::render::RenderOptions;
+use crate::walk::{walk, Motion, Route, Tour, Visit, Walk, WalkError};
+use serde::{Deserialize, Serialize};
 
 fn space(name: &str, kind: SpaceKind, min: [f64; 2], max: [f64; 2]) -> Space {
     Space {
@@ -121,28 +125,28 @@ pub fn scenario(name: &str) -> Option<FloorPlan> {
                     "South corridor",
                     "East corridor",
                     [12.0, 1.0],
-                    1.8,
+                    1.2,
                 ),
                 door(
                     "East-north",
                     "North corridor",
                     "East corridor",
                     [12.0, 11.0],
-                    1.8,
+                    1.2,
                 ),
                 door(
                     "North-west",
                     "West corridor",
                     "North corridor",
                     [2.0, 11.0],
-                    1.8,
+                    1.2,
                 ),
                 door(
                     "West-south",
                     "South corridor",
                     "West corridor",
                     [1.0, 2.0],
-                    1.8,
+                    1.2,
                 ),
                 door("Hall door", "South corridor", "Hall", [6.0, 2.0], 0.9),
             ],
@@ -171,4 +175,204 @@ pub fn scenario(name: &str) -> Option<FloorPlan> {
         ),
         _ => return None,
     })
+}
+
+fn visit(space: &str, tour: Tour) -> Visit {
+    Visit {
+        space: space.into(),
+        tour,
+    }
+}
+
+fn route(robot: &str, start: [f64; 2], visits: Vec<Visit>) -> Route {
+    Route {
+        robot: robot.into(),
+        start: Some(start),
+        visits,
+    }
+}
+
+use Tour::{Loop, Points, Through};
+
+/// The robots' routes of a built-in scenario: every space toured, doors crossed both ways, and
+/// a return to the start that closes a loop.
+pub fn routes(name: &str) -> Option<Vec<Route>> {
+    let one = |start: [f64; 2], visits: Vec<Visit>| vec![route("robot-1", start, visits)];
+    Some(match name {
+        "seq01" => one(
+            [1.5, 2.0],
+            vec![
+                visit("Lab A", Loop),
+                visit("Lab B", Loop),
+                visit("Lab A", Points(vec![[2.0, 2.0]])),
+            ],
+        ),
+        "seq02" => one(
+            [1.0, 1.0],
+            vec![
+                visit("Corridor 1", Through),
+                visit("Office", Loop),
+                visit("Corridor 1", Through),
+                visit("Corridor 2", Loop),
+                visit("Corridor 1", Points(vec![[1.5, 1.0]])),
+            ],
+        ),
+        "seq03" => {
+            let mut visits = vec![];
+            for i in 1..=5 {
+                visits.push(visit("Corridor", Through));
+                visits.push(visit(&format!("Room {i}"), Loop));
+            }
+            visits.push(visit("Corridor", Points(vec![[10.0, 1.0], [1.5, 1.0]])));
+            one([1.0, 1.0], visits)
+        }
+        "seq04" => one(
+            [1.0, 1.0],
+            vec![
+                visit("Corridor A", Through),
+                visit("Landing", Loop),
+                visit("Corridor B", Loop),
+                visit("Landing", Through),
+                visit("Corridor A", Points(vec![[1.5, 1.0]])),
+            ],
+        ),
+        "seq05" => one(
+            [3.0, 1.0],
+            vec![
+                visit("South corridor", Through),
+                visit("East corridor", Loop),
+                visit("North corridor", Through),
+                visit("West corridor", Through),
+                visit("South corridor", Through),
+                visit("Hall", Loop),
+                visit("South corridor", Points(vec![[3.0, 1.0]])),
+            ],
+        ),
+        "seq06" => one(
+            [2.0, 2.5],
+            vec![
+                visit("Lab", Loop),
+                visit("Corridor", Loop),
+                visit("Lab", Points(vec![[2.0, 2.5]])),
+            ],
+        ),
+        // Each robot enters the hall by its own door and keeps to its half: both see the
+        // south and north walls, only one the west wall, only the other the east wall.
+        "two_robots" => vec![
+            route(
+                "robot-1",
+                [1.0, 1.0],
+                vec![
+                    visit("Corridor", Through),
+                    visit(
+                        "Hall",
+                        Points(vec![
+                            [4.0, 4.5],
+                            [3.2, 6.0],
+                            [4.0, 7.5],
+                            [6.5, 8.5],
+                            [6.5, 4.0],
+                        ]),
+                    ),
+                    visit("Corridor", Points(vec![[11.0, 1.0], [1.0, 1.0]])),
+                ],
+            ),
+            route(
+                "robot-2",
+                [15.0, 1.0],
+                vec![
+                    visit("Corridor", Through),
+                    visit(
+                        "Hall",
+                        Points(vec![
+                            [12.0, 4.5],
+                            [12.8, 6.0],
+                            [12.0, 7.5],
+                            [9.5, 8.5],
+                            [9.5, 4.0],
+                        ]),
+                    ),
+                    visit("Corridor", Points(vec![[15.0, 1.0]])),
+                ],
+            ),
+        ],
+        _ => return None,
+    })
+}
+
+/// Everything needed to simulate a run: the building, the robots' routes, how they move and
+/// how the camera renders. Built in by name, or read from a JSON file of this shape (`motion`
+/// and `render` optional).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Scenario {
+    pub plan: FloorPlan,
+    pub routes: Vec<Route>,
+    #[serde(default)]
+    pub motion: Motion,
+    #[serde(default)]
+    pub render: RenderOptions,
+}
+
+#[derive(Debug, thiserror::Error)]
+pub enum ScenarioError {
+    #[error("{0:?} is neither a built-in scenario ({list}) nor a readable file: {1}", list = NAMES.join(", "))]
+    NotFound(String, std::io::Error),
+    #[error("{path}: not a scenario: {message}")]
+    Json { path: String, message: String },
+    #[error(transparent)]
+    Plan(#[from] PlanError),
+    #[error(transparent)]
+    Walk(#[from] WalkError),
+    #[error("two routes are for robot {0:?}")]
+    DuplicateRobot(String),
+}
+
+impl Scenario {
+    /// A built-in scenario by name.
+    pub fn builtin(name: &str) -> Option<Self> {
+        Some(Self {
+            plan: scenario(name)?,
+            routes: routes(name)?,
+            motion: Motion::default(),
+            render: RenderOptions::default(),
+        })
+    }
+
+    /// A built-in name, or the path of a scenario JSON file.
+    pub fn load(name_or_path: &str) -> Result<Self, ScenarioError> {
+        let scenario = match Self::builtin(name_or_path) {
+            Some(s) => s,
+            None => {
+                let text = std::fs::read_to_string(name_or_path)
+                    .map_err(|e| ScenarioError::NotFound(name_or_path.to_owned(), e))?;
+                serde_json::from_str(&text).map_err(|e| ScenarioError::Json {
+                    path: name_or_path.to_owned(),
+                    message: e.to_string(),
+                })?
+            }
+        };
+        scenario.check()?;
+        Ok(scenario)
+    }
+
+    /// Validates the plan and plans every route.
+    pub fn check(&self) -> Result<(), ScenarioError> {
+        self.plan.validate()?;
+        for (i, r) in self.routes.iter().enumerate() {
+            if self.routes[..i].iter().any(|o| o.robot == r.robot) {
+                return Err(ScenarioError::DuplicateRobot(r.robot.clone()));
+            }
+            walk(&self.plan, r, &self.motion)?;
+        }
+        Ok(())
+    }
+
+    /// Every robot's walk.
+    pub fn walks(&self) -> Result<Vec<Walk>, WalkError> {
+        self.routes
+            .iter()
+            .map(|r| walk(&self.plan, r, &self.motion))
+            .collect()
+    }
 }

@@ -31,7 +31,48 @@ fn every_scenario_has_consistent_ground_truth() {
                 "{name}: marker {} faces away",
                 m.id
             );
-            assert!((t.z - plan.markers.height).abs() < 1e-12);
+            // At the markers' height, or, for a door marker with no room beside its frame,
+            // centred above the frame.
+            let above_door = m.doorway.is_some_and(|d| {
+                let door = &plan.doors[d];
+                let height = door.height + 0.15 + plan.markers.side / 2.0;
+                (t.z - height).abs() < 1e-12
+                    && (t.xy() - nalgebra::Vector2::from(door.at)).norm() < 1e-12
+            });
+            assert!(
+                (t.z - plan.markers.height).abs() < 1e-12 || above_door,
+                "{name}: marker {}",
+                m.id
+            );
+        }
+        // No two markers overlap (with a marker's width of space between them), and none hangs
+        // in a door's opening.
+        for (i, a) in b.markers.iter().enumerate() {
+            let pa = a.world_from_marker.translation.vector;
+            for bm in &b.markers[..i] {
+                let pb = bm.world_from_marker.translation.vector;
+                let same_face = (a
+                    .world_from_marker
+                    .rotation
+                    .angle_to(&bm.world_from_marker.rotation))
+                    < 1e-9;
+                assert!(
+                    !same_face || (pa - pb).norm() > 2.0 * plan.markers.side,
+                    "{name}: markers {} and {} overlap",
+                    a.id,
+                    bm.id
+                );
+            }
+            for door in &plan.doors {
+                let along = (pa.xy() - nalgebra::Vector2::from(door.at)).norm();
+                let in_opening = along < door.width / 2.0 + plan.markers.side / 2.0
+                    && pa.z - plan.markers.side / 2.0 < door.height;
+                assert!(
+                    !in_opening,
+                    "{name}: marker {} in the opening of {}",
+                    a.id, door.name
+                );
+            }
         }
         for (si, s) in b.spaces.iter().enumerate() {
             let planes: Vec<_> = s.walls.iter().map(|&w| &b.walls[w].plane).collect();
@@ -152,4 +193,30 @@ fn broken_plans_are_refused_with_their_reason() {
     let mut plan = scenario("seq06").unwrap();
     plan.markers.height = 2.59;
     assert_eq!(plan.validate(), Err(PlanError::MarkerHeight));
+    let mut plan = scenario("seq06").unwrap();
+    plan.markers.dictionary = "DICT_ARUCO_ORIGINAL".into();
+    assert!(matches!(
+        plan.validate(),
+        Err(PlanError::UnknownDictionary(_))
+    ));
+    let mut plan = scenario("seq03").unwrap();
+    plan.markers.dictionary = "DICT_4X4_50".into();
+    plan.spaces
+        .extend((0..5).map(|i| vsgraphs_sim::plan::Space {
+            name: format!("Annex {i}"),
+            kind: SpaceKind::Room,
+            min: [30.0 + 5.0 * f64::from(i), 0.0],
+            max: [34.0 + 5.0 * f64::from(i), 4.0],
+        }));
+    assert_eq!(
+        plan.validate(),
+        Err(PlanError::TooManyMarkers {
+            dictionary: "DICT_4X4_50".into(),
+            needed: 52,
+            holds: 50
+        })
+    );
+    let mut plan = scenario("seq06").unwrap();
+    plan.doors[0].height = 2.4;
+    assert!(matches!(plan.validate(), Err(PlanError::DoorHeight { .. })));
 }
