@@ -91,6 +91,10 @@ pub struct RobotStatus {
     pub frames: FrameCounters,
     pub timing: Timing,
     pub last_rejection: Option<Rejection>,
+    /// Every marker id detected in this robot's frames so far, with the number of frames it
+    /// was detected in.
+    #[serde(default)]
+    pub markers_detected: BTreeMap<i32, u64>,
 }
 
 /// Where a marker's distance came from.

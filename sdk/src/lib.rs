@@ -5,6 +5,7 @@
 //! - [`encode`]: turns raw colour and depth buffers into the wire encodings.
 //! - [`Client`]: the server's REST API.
 //! - [`dataset`] and [`player`]: recorded sequences (TUM RGB-D, 7-Scenes) streamed like a robot.
+//! - `simulated` (feature `sim`, on by default): virtual robots walking simulated buildings.
 //!
 //! No OpenCV here: a robot needs only this crate and `vsgraphs-proto`.
 
@@ -13,6 +14,8 @@ pub mod dataset;
 pub mod encode;
 pub mod player;
 pub mod robot;
+#[cfg(feature = "sim")]
+pub mod simulated;
 pub mod zenoh_config;
 
 pub use client::{Client, ClientError};

@@ -285,15 +285,19 @@ impl Renderer {
         let exposure = (AUTO_EXPOSURE_TARGET / mean.max(1.0)).clamp(0.5, 2.0) * (1.0 + drift);
         let mut random = Random::derive(self.seed, 0xC010_0000 ^ index);
         let noise = self.options.image_noise as f32;
-        let mut rgb = Vec::with_capacity(w * h * 3);
-        for (i, (g, hit)) in grey.iter().zip(&hits).enumerate() {
-            let value = g * exposure as f32 * self.vignette[i];
-            let tint = hit
-                .get()
-                .map_or([1.0; 3], |h| self.scene.surfaces[h.surface as usize].tint);
-            for channel in tint {
-                let v = value * channel + noise * random.fast_normal();
-                rgb.push(v.clamp(0.0, 255.0) as u8);
+        let tints: Vec<[f32; 3]> = self.scene.surfaces.iter().map(|s| s.tint).collect();
+        let mut rgb = vec![0u8; w * h * 3];
+        for (((out, g), hit), vignette) in rgb
+            .chunks_exact_mut(3)
+            .zip(&grey)
+            .zip(&hits)
+            .zip(&self.vignette)
+        {
+            let value = g * exposure as f32 * vignette;
+            let tint = tints.get(hit.surface as usize).unwrap_or(&[1.0; 3]);
+            let noises = random.fast_normals3();
+            for k in 0..3 {
+                out[k] = (value * tint[k] + noise * noises[k]).clamp(0.0, 255.0) as u8;
             }
         }
         Frame {
@@ -506,6 +510,7 @@ impl Renderer {
         let focal_baseline = camera.fx * sensor.baseline;
         let z_of = |i: usize| hits[i].get().map_or(f32::INFINITY, |h| h.z);
         let mut random = Random::derive(self.seed, 0xDE97_0000 ^ index);
+        let dropout_above = irwin_hall3_quantile(1.0 - sensor.dropout);
         let mut depth = vec![0f32; w * h];
         for y in 0..h {
             for x in 0..w {
@@ -529,11 +534,12 @@ impl Renderer {
                 ]
                 .iter()
                 .any(|&(inside, j)| inside && hit.z - z_of(j) > jump);
-                if shadowed || random.uniform() < sensor.dropout {
+                // One draw: the dropout from its first channel, the noise from the second.
+                let [drop, noise, _] = random.fast_normals3();
+                if shadowed || drop > dropout_above {
                     continue;
                 }
-                let mut disparity =
-                    focal_baseline / z + sensor.disparity_sigma * f64::from(random.fast_normal());
+                let mut disparity = focal_baseline / z + sensor.disparity_sigma * f64::from(noise);
                 if sensor.disparity_step > 0.0 && disparity > 0.0 {
                     // Round half up by truncation (a positive value): `round` is a libm call
                     // on baseline x86-64, and this runs per pixel.
@@ -548,4 +554,35 @@ impl Renderer {
         }
         depth
     }
+}
+
+/// The value a [`Random::fast_normals3`] channel exceeds with probability `1 − p`, from the
+/// Irwin–Hall distribution of three uniforms (exact for the continuous form).
+fn irwin_hall3_quantile(p: f64) -> f32 {
+    let p = p.clamp(0.0, 1.0);
+    // CDF of the sum S of three U(0, 1) on its three pieces; invert by bisection.
+    let cdf = |s: f64| {
+        if s <= 0.0 {
+            0.0
+        } else if s <= 1.0 {
+            s.powi(3) / 6.0
+        } else if s <= 2.0 {
+            (-2.0 * s.powi(3) + 9.0 * s * s - 9.0 * s + 3.0) / 6.0
+        } else if s <= 3.0 {
+            1.0 - (3.0 - s).powi(3) / 6.0
+        } else {
+            1.0
+        }
+    };
+    let (mut lo, mut hi) = (0.0, 3.0);
+    for _ in 0..60 {
+        let mid = 0.5 * (lo + hi);
+        if cdf(mid) < p {
+            lo = mid;
+        } else {
+            hi = mid;
+        }
+    }
+    // S has mean 1.5 and standard deviation 1/2; the channels are (S − 1.5) × 2.
+    ((lo - 1.5) * 2.0) as f32
 }

@@ -96,7 +96,7 @@ pub(crate) fn generate(canvas: &Canvas, lighting: &Lighting) -> Texture {
                 Pattern::Wall => {
                     let stains = 24.0 * (noise.fbm(u / 0.7, v / 0.7, 3) - 0.5);
                     let grain = 26.0 * (noise.at(u / 0.035, v / 0.035, 11) - 0.5)
-                        + 14.0 * (noise.at(u / 0.011, v / 0.011, 12) - 0.5);
+                        + 22.0 * (noise.at(u / 0.011, v / 0.011, 12) - 0.5);
                     let skirting = if v < 0.09 { -85.0 } else { 0.0 };
                     178.0 + stains + grain + skirting
                 }
@@ -143,7 +143,7 @@ pub(crate) fn generate(canvas: &Canvas, lighting: &Lighting) -> Texture {
                 painter.poster(&mut random, &noise, canvas.size);
             }
             // Notes, stickers, switches and scuffs: small marks, light and dark.
-            for _ in 0..(area * 30.0) as usize {
+            for _ in 0..(area * 45.0) as usize {
                 let centre = [
                     random.range(0.0, canvas.size[0]),
                     random.range(0.12, canvas.size[1]),
@@ -157,8 +157,15 @@ pub(crate) fn generate(canvas: &Canvas, lighting: &Lighting) -> Texture {
                 if random.uniform() < 0.5 {
                     painter.disc(centre, size, grey);
                 } else {
-                    let aspect = random.range(0.4, 2.5);
-                    painter.block(centre, [size * aspect, size / aspect], grey);
+                    // Elongated, like labels and switches: a dark square would read as an
+                    // all-black marker.
+                    let aspect = random.range(1.7, 3.0);
+                    let half = if random.uniform() < 0.5 {
+                        [size * aspect, size / aspect]
+                    } else {
+                        [size / aspect, size * aspect]
+                    };
+                    painter.block(centre, half, grey);
                 }
             }
         }
@@ -285,14 +292,16 @@ impl Painter<'_> {
             for x in xs.clone() {
                 let u = (x as f64 + 0.5) * self.texel - u0;
                 let v = (y as f64 + 0.5) * self.texel - v0;
+                // A light frame, and no black blocks: a dark square outline with a grid of
+                // dark cells inside is what a marker detector looks for.
                 let grey = if u < frame || v < frame || w - u < frame || h - v < frame {
-                    35.0
+                    150.0
                 } else {
                     match kind {
                         0 => {
                             let (i, j) =
                                 ((u / cell).floor() as i64, (v / (cell * 1.3)).floor() as i64);
-                            40.0 + 200.0 * noise.lattice(i + seed, j, 41)
+                            75.0 + 160.0 * noise.lattice(i + seed, j, 41)
                         }
                         1 => {
                             let stripe = (u * 1.7 + v * 0.6) / cell;

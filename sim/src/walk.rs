@@ -508,9 +508,17 @@ fn poses(
         // Pitch about the camera's x axis, roll about its z axis.
         let tilt = Rotation3::from_euler_angles(pitch, 0.0, 0.0)
             * Rotation3::from_euler_angles(0.0, 0.0, roll);
+        let mut rotation = UnitQuaternion::from_rotation_matrix(&(level * tilt));
+        // q and −q are one rotation; keep the sign continuous so written trajectories are too.
+        if let Some(previous) = world_from_camera.last() {
+            let previous: &Isometry3<f64> = previous;
+            if rotation.coords.dot(&previous.rotation.coords) < 0.0 {
+                rotation = UnitQuaternion::new_unchecked(-rotation.into_inner());
+            }
+        }
         world_from_camera.push(Isometry3::from_parts(
             Translation3::new(p[0], p[1], height),
-            UnitQuaternion::from_rotation_matrix(&(level * tilt)),
+            rotation,
         ));
         times.push(t);
     }

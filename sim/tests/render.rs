@@ -337,3 +337,55 @@ fn surfaces_give_orb_features_everywhere_on_a_walk() {
         assert!(counts[0] >= 250 && median >= 800, "{name}: {counts:?}");
     }
 }
+
+#[test]
+fn the_detector_finds_the_markers_in_view_and_nothing_else() {
+    for name in vsgraphs_sim::scenarios::NAMES {
+        let scenario = vsgraphs_sim::scenarios::Scenario::builtin(name).unwrap();
+        let building = Building::from_plan(&scenario.plan).unwrap();
+        let renderer = Renderer::new(&scenario.plan, &building, scenario.render.clone(), 1);
+        let dictionary = MarkerDictionary::predefined(&scenario.plan.markers.dictionary).unwrap();
+        let mut detector = MarkerDetector::new(dictionary, CornerRefinement::Subpixel).unwrap();
+        let (mut in_view, mut found, mut strangers) = (0, 0, Vec::new());
+        for walk in scenario.walks().unwrap() {
+            for i in (0..walk.times.len()).step_by(30) {
+                let pose = walk.world_from_camera[i];
+                let frame = renderer.render(i as u64, walk.times[i], &[pose]);
+                let grey = frame.grey();
+                let image = Mat::new_rows_cols_with_data(480, 640, grey.as_slice())
+                    .unwrap()
+                    .try_clone()
+                    .unwrap();
+                let detected: Vec<i32> = detector
+                    .detect(&image)
+                    .unwrap()
+                    .iter()
+                    .map(|d| d.id)
+                    .collect();
+                strangers.extend(
+                    detected
+                        .iter()
+                        .filter(|&&id| !building.markers.iter().any(|m| m.id as i32 == id))
+                        .map(|&id| (i, id)),
+                );
+                // Markers squarely in view and near: a detector should not miss them.
+                for id in renderer.visible_markers(&building, &pose, 2.5, 45.0) {
+                    in_view += 1;
+                    found += usize::from(detected.contains(&(id as i32)));
+                }
+            }
+        }
+        eprintln!(
+            "{name}: {found} of {in_view} markers in view found; false detections {strangers:?}"
+        );
+        // The textures hold no marker look-alikes (no dark squares, no framed block grids).
+        assert!(
+            strangers.is_empty(),
+            "{name}: markers that are not in the building: {strangers:?}"
+        );
+        assert!(
+            in_view >= 5 && found * 100 >= in_view * 90,
+            "{name}: {found} of {in_view}"
+        );
+    }
+}

@@ -19,7 +19,7 @@ struct Cli {
     command: Command,
 }
 
-#[derive(Clone, Copy, ValueEnum)]
+#[derive(Clone, Copy, Debug, ValueEnum)]
 enum DepthCodec {
     Rvl,
     Png16,
@@ -64,6 +64,84 @@ enum Command {
         #[arg(long)]
         server: Option<String>,
     },
+    /// Walk a simulated building and stream what the camera sees: a built-in scenario
+    /// (`vsgraphs-sim list`) or a scenario JSON file. Every robot of the scenario streams at
+    /// once, each under its own id.
+    #[cfg(feature = "sim")]
+    Sim {
+        /// A built-in scenario name or a scenario JSON file.
+        scenario: String,
+        /// Stream only this robot of the scenario.
+        #[arg(long)]
+        robot: Option<String>,
+        /// Prefix of the robot ids on the wire (ids are the scenario's robot names).
+        #[arg(long, default_value = "")]
+        id_prefix: String,
+        /// zenoh endpoint of the server or a router; repeatable.
+        #[arg(long, default_value = "tcp/127.0.0.1:7447")]
+        connect: Vec<String>,
+        /// Also find the server by UDP multicast scouting.
+        #[arg(long)]
+        scout: bool,
+        /// realtime (the walk's 30 Hz), max, or a frame rate in Hz.
+        #[arg(long, default_value = "realtime")]
+        rate: Rate,
+        /// Depth codec on the wire.
+        #[arg(long, value_enum, default_value = "rvl")]
+        depth_codec: DepthCodec,
+        /// Stop after this many frames per robot.
+        #[arg(long)]
+        limit: Option<usize>,
+        /// Times to walk the route (each ends where it began); 0 repeats until interrupted.
+        #[arg(long, default_value_t = 1)]
+        loops: u32,
+        /// The camera's frame rate (the scenario's, 30 Hz, by default).
+        #[arg(long)]
+        fps: Option<f64>,
+        /// Drop frames the network cannot take at once (default at real-time rate).
+        #[arg(long)]
+        live: Option<bool>,
+        /// Seed of the building's textures and the sensor noise.
+        #[arg(long, default_value_t = 1)]
+        seed: u64,
+        /// Write each robot's ground-truth trajectory (TUM, stamped as streamed) into this
+        /// folder, as ROBOT.groundtruth.txt.
+        #[arg(long)]
+        ground_truth: Option<PathBuf>,
+        /// The server's HTTP address: at the end, print what it made of the frames.
+        #[arg(long)]
+        server: Option<String>,
+    },
+}
+
+fn depth_encoding(codec: DepthCodec) -> DepthEncoding {
+    match codec {
+        DepthCodec::Rvl => DepthEncoding::Rvl,
+        DepthCodec::Png16 => DepthEncoding::Png16,
+        DepthCodec::Raw16 => DepthEncoding::Raw16,
+    }
+}
+
+/// Prints what the server made of a robot's frames.
+async fn report_server(server: &str, robot_id: &str) -> anyhow::Result<()> {
+    let status = Client::new(server).robot(robot_id).await?;
+    let f = &status.frames;
+    println!(
+        "server, {robot_id}: received {}, processed {}, dropped {}, rejected {} {:?}, lost {}",
+        f.received, f.processed, f.dropped, f.rejected, f.rejected_by_reason, f.lost
+    );
+    if !status.markers_detected.is_empty() {
+        let markers: Vec<String> = status
+            .markers_detected
+            .iter()
+            .map(|(id, frames)| format!("{id}×{frames}"))
+            .collect();
+        println!(
+            "server, {robot_id}: markers detected (id×frames): {}",
+            markers.join(" ")
+        );
+    }
+    Ok(())
 }
 
 #[tokio::main]
@@ -123,11 +201,7 @@ async fn main() -> anyhow::Result<()> {
             );
             let options = PlayOptions {
                 rate,
-                depth_codec: match depth_codec {
-                    DepthCodec::Rvl => DepthEncoding::Rvl,
-                    DepthCodec::Png16 => DepthEncoding::Png16,
-                    DepthCodec::Raw16 => DepthEncoding::Raw16,
-                },
+                depth_codec: depth_encoding(depth_codec),
                 loops,
                 limit,
                 original_timestamps,
@@ -168,15 +242,213 @@ async fn main() -> anyhow::Result<()> {
             if let Some(server) = server {
                 // Let the last frames drain through the server's queue.
                 tokio::time::sleep(std::time::Duration::from_millis(500)).await;
-                let status = Client::new(server).robot(&robot_id).await?;
-                let f = &status.frames;
-                println!(
-                    "server: received {}, processed {}, dropped {}, rejected {} {:?}, lost {}",
-                    f.received, f.processed, f.dropped, f.rejected, f.rejected_by_reason, f.lost
-                );
+                report_server(&server, &robot_id).await?;
             }
             robot.close().await?;
         }
+        #[cfg(feature = "sim")]
+        Command::Sim {
+            scenario,
+            robot,
+            id_prefix,
+            connect,
+            scout,
+            rate,
+            depth_codec,
+            limit,
+            loops,
+            fps,
+            live,
+            seed,
+            ground_truth,
+            server,
+        } => {
+            let options = SimCommand {
+                robot,
+                id_prefix,
+                zenoh: ZenohSettings {
+                    connect,
+                    multicast_scouting: scout,
+                    ..ZenohSettings::default()
+                },
+                live: live.unwrap_or(rate != Rate::Max),
+                sim: vsgraphs_sdk::simulated::SimOptions {
+                    rate,
+                    limit,
+                    loops,
+                    depth_codec: depth_encoding(depth_codec),
+                    ..Default::default()
+                },
+                fps,
+                seed,
+                ground_truth,
+                server,
+            };
+            sim::run(&scenario, options).await?;
+        }
     }
     Ok(())
+}
+
+#[cfg(feature = "sim")]
+struct SimCommand {
+    robot: Option<String>,
+    id_prefix: String,
+    zenoh: ZenohSettings,
+    live: bool,
+    sim: vsgraphs_sdk::simulated::SimOptions,
+    fps: Option<f64>,
+    seed: u64,
+    ground_truth: Option<PathBuf>,
+    server: Option<String>,
+}
+
+#[cfg(feature = "sim")]
+mod sim {
+    use super::*;
+    use indicatif::MultiProgress;
+    use std::sync::Arc;
+    use vsgraphs_sdk::simulated::{self, SimSummary};
+    use vsgraphs_sim::scenarios::Scenario;
+    use vsgraphs_sim::{Building, Renderer};
+
+    pub async fn run(name: &str, options: super::SimCommand) -> anyhow::Result<()> {
+        let mut scenario = Scenario::load(name)?;
+        if let Some(fps) = options.fps {
+            scenario.motion.rate_hz = fps;
+        }
+        let building = Building::from_plan(&scenario.plan)?;
+        let mut walks = scenario.walks()?;
+        if let Some(wanted) = &options.robot {
+            walks.retain(|w| &w.robot == wanted);
+            if walks.is_empty() {
+                let names: Vec<&str> = scenario.routes.iter().map(|r| r.robot.as_str()).collect();
+                anyhow::bail!(
+                    "{name} has no robot {wanted:?}; its robots: {}",
+                    names.join(", ")
+                );
+            }
+        }
+        eprintln!(
+            "{name}: {} spaces, {} doors, {} markers ({}); building the textures...",
+            scenario.plan.spaces.len(),
+            scenario.plan.doors.len(),
+            building.markers.len(),
+            scenario.plan.markers.dictionary
+        );
+        let renderer = Arc::new(
+            tokio::task::spawn_blocking({
+                let scenario = scenario.clone();
+                move || {
+                    Renderer::new(
+                        &scenario.plan,
+                        &building,
+                        scenario.render.clone(),
+                        options.seed,
+                    )
+                }
+            })
+            .await?,
+        );
+        let bars = MultiProgress::new();
+        let style = ProgressStyle::with_template(
+            "{prefix:12} {bar:40} {pos}/{len} frames {per_sec} eta {eta}",
+        )
+        .expect("a valid template");
+        let mut tasks = tokio::task::JoinSet::new();
+        for walk in walks {
+            let robot_id = format!("{}{}", options.id_prefix, walk.robot);
+            let config = RobotConfig {
+                robot_id: robot_id.clone(),
+                session_id: None,
+                zenoh: options.zenoh.clone(),
+                delivery: if options.live {
+                    Delivery::Live
+                } else {
+                    Delivery::Reliable
+                },
+            };
+            let robot = Robot::connect(config)
+                .await
+                .with_context(|| format!("connecting {robot_id} to zenoh"))?;
+            eprintln!(
+                "{robot_id}: {:.1} m in {:.0} s, {} frames, session {}",
+                walk.length(),
+                walk.times.last().unwrap_or(&0.0),
+                walk.times.len(),
+                robot.session_id()
+            );
+            let bar = bars.add(ProgressBar::new(0));
+            bar.set_style(style.clone());
+            bar.set_prefix(robot_id.clone());
+            let (renderer, sim) = (renderer.clone(), options.sim.clone());
+            let walk = Arc::new(walk);
+            tasks.spawn(async move {
+                let result =
+                    simulated::stream(&robot, renderer, walk.clone(), &sim, |sent, total| {
+                        bar.set_length(if total == 0 { sent } else { total });
+                        bar.set_position(sent);
+                    })
+                    .await;
+                bar.finish_and_clear();
+                (robot_id, robot, walk, result)
+            });
+        }
+        let mut finished: Vec<(String, SimSummary)> = Vec::new();
+        let mut failure = None;
+        let mut robots = Vec::new();
+        let all = async {
+            while let Some(joined) = tasks.join_next().await {
+                let (robot_id, robot, walk, result) = joined?;
+                match result {
+                    Ok(summary) => {
+                        if let Some(dir) = &options.ground_truth {
+                            std::fs::create_dir_all(dir)?;
+                            let path = dir.join(format!("{robot_id}.groundtruth.txt"));
+                            let frames = summary.frames_sent as usize;
+                            std::fs::write(
+                                &path,
+                                simulated::ground_truth_tum(&walk, summary.start_ns, frames),
+                            )
+                            .with_context(|| format!("writing {}", path.display()))?;
+                        }
+                        finished.push((robot_id, summary));
+                    }
+                    Err(e) => failure = Some(anyhow::anyhow!("{robot_id}: {e}")),
+                }
+                robots.push(robot);
+            }
+            anyhow::Ok(())
+        };
+        tokio::select! {
+            result = all => result?,
+            _ = tokio::signal::ctrl_c() => {
+                eprintln!("interrupted");
+                return Ok(());
+            }
+        }
+        finished.sort_by(|a, b| a.0.cmp(&b.0));
+        for (robot_id, s) in &finished {
+            println!(
+                "{robot_id}: sent {} frames, {:.1} MB in {:.1} s ({:.1} Hz); render {:.1} ms, encode {:.1} ms per frame; {} late",
+                s.frames_sent,
+                s.bytes_sent as f64 / 1e6,
+                s.elapsed.as_secs_f64(),
+                s.rate_hz(),
+                s.render_ms,
+                s.encode_ms,
+                s.late
+            );
+        }
+        if let Some(server) = &options.server {
+            tokio::time::sleep(std::time::Duration::from_millis(500)).await;
+            for (robot_id, _) in &finished {
+                report_server(server, robot_id).await?;
+            }
+        }
+        for robot in robots {
+            robot.close().await?;
+        }
+        failure.map_or(Ok(()), Err)
+    }
 }

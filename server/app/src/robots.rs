@@ -39,6 +39,8 @@ struct RobotState {
     rejected_by_reason: BTreeMap<String, u64>,
     lost: u64,
     last_rejection: Option<api::Rejection>,
+    /// Frames each marker id was detected in.
+    markers_detected: BTreeMap<i32, u64>,
     /// (when processed, capture-to-processed latency ms, processing ms) of recent frames.
     recent: VecDeque<(Instant, f64, f64)>,
 }
@@ -98,6 +100,9 @@ impl RobotEntry {
         {
             let mut state = self.state();
             state.processed += 1;
+            for marker in &detections.markers {
+                *state.markers_detected.entry(marker.id).or_default() += 1;
+            }
             let now = Instant::now();
             state
                 .recent
@@ -168,6 +173,7 @@ impl RobotEntry {
                 processing_ms_mean: mean(|r| r.2),
             },
             last_rejection: state.last_rejection.clone(),
+            markers_detected: state.markers_detected.clone(),
         }
     }
 }
@@ -277,7 +283,7 @@ mod tests {
     fn counters_add_up_in_the_status() {
         let registry = Registry::new(2, 4, true);
         let (robot, _) = registry.get_or_insert("a").unwrap();
-        for _ in 0..5 {
+        for _ in 0..6 {
             robot.record_arrival();
         }
         robot.record_dropped();
@@ -303,23 +309,38 @@ mod tests {
             markers: vec![],
         };
         robot.record_processed(detections.clone(), Duration::from_millis(3));
+        let marker = |id| vsgraphs_proto::api::MarkerDetection {
+            id,
+            corners_px: [[0.0; 2]; 4],
+            pose: None,
+        };
         robot.record_processed(
             FrameDetections {
                 sequence: 4,
-                ..detections
+                markers: vec![marker(7), marker(2)],
+                ..detections.clone()
             },
             Duration::from_millis(5),
         );
+        robot.record_processed(
+            FrameDetections {
+                sequence: 5,
+                markers: vec![marker(7)],
+                ..detections
+            },
+            Duration::from_millis(4),
+        );
         let status = robot.status();
-        assert_eq!(status.frames.received, 5);
+        assert_eq!(status.markers_detected, BTreeMap::from([(2, 1), (7, 2)]));
+        assert_eq!(status.frames.received, 6);
         assert_eq!(
             status.frames.processed + status.frames.dropped + status.frames.rejected,
-            5
+            6
         );
         assert_eq!(status.frames.rejected_by_reason["colour_decode"], 2);
         assert_eq!(status.last_rejection.unwrap().sequence, Some(2));
         assert_eq!(status.timing.processing_ms_mean, Some(4.0));
-        assert_eq!(robot.latest_detections().unwrap().sequence, 4);
+        assert_eq!(robot.latest_detections().unwrap().sequence, 5);
         assert_eq!(status.presence, Presence::Unknown);
     }
 }

@@ -87,13 +87,46 @@ impl MarkerDetector {
             for (slot, point) in corners.iter_mut().zip(quad.iter()) {
                 *slot = [point.x, point.y];
             }
-            detections.push(Detection { id, corners });
+            if plausible_square(&corners) {
+                detections.push(Detection { id, corners });
+            } else {
+                // A sliver that happened to decode: not a marker.
+            }
         }
         if self.refinement == CornerRefinement::Subpixel {
             refine_subpixel(image, &mut detections)?;
         }
         Ok(detections)
     }
+}
+
+/// Shortest side of a marker's outline against its longest: a square seen 72° off its normal
+/// still has 0.3. Slivers below this are stripes and edges that happened to decode (small
+/// dictionaries such as 4×4 accept many bit patterns), and a marker seen that obliquely gives
+/// no usable pose anyway.
+const MIN_SIDE_RATIO: f32 = 0.3;
+/// Shortest side of a marker's outline, pixels: a 4×4 marker (6 cells with its border) needs
+/// at least a pixel per cell to be read rather than guessed.
+const MIN_SIDE_PX: f32 = 6.0;
+
+/// Whether a detected outline can be a square marker in perspective: convex, big enough to
+/// read, and no side much shorter than the others.
+fn plausible_square(c: &[[f32; 2]; 4]) -> bool {
+    let side = |i: usize| {
+        let (a, b) = (c[i], c[(i + 1) % 4]);
+        ((a[0] - b[0]).powi(2) + (a[1] - b[1]).powi(2)).sqrt()
+    };
+    let sides = [side(0), side(1), side(2), side(3)];
+    let shortest = sides.iter().copied().fold(f32::MAX, f32::min);
+    let longest = sides.iter().copied().fold(0.0, f32::max);
+    // Convex: every turn has the same sign.
+    let turn = |i: usize| {
+        let (a, b, d) = (c[i], c[(i + 1) % 4], c[(i + 2) % 4]);
+        (b[0] - a[0]) * (d[1] - b[1]) - (b[1] - a[1]) * (d[0] - b[0])
+    };
+    let turns = [turn(0), turn(1), turn(2), turn(3)];
+    let convex = turns.iter().all(|&t| t > 0.0) || turns.iter().all(|&t| t < 0.0);
+    convex && shortest >= MIN_SIDE_PX && shortest >= MIN_SIDE_RATIO * longest
 }
 
 /// Largest half-window of the sub-pixel corner search, pixels.
@@ -149,4 +182,46 @@ fn refine_subpixel(image: &Mat, detections: &mut [Detection]) -> Result<(), CvEr
         }
     }
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::plausible_square;
+
+    #[test]
+    fn slivers_and_crossed_outlines_are_not_markers() {
+        // A marker straight on, and one seen about 60° off its normal.
+        assert!(plausible_square(&[
+            [0.0, 0.0],
+            [20.0, 0.0],
+            [20.0, 20.0],
+            [0.0, 20.0]
+        ]));
+        assert!(plausible_square(&[
+            [0.0, 0.0],
+            [10.0, 1.0],
+            [10.0, 19.0],
+            [0.0, 20.0]
+        ]));
+        // A 4-pixel sliver along a stripe (seen on rendered walls), and a self-crossing outline.
+        assert!(!plausible_square(&[
+            [350.0, 186.0],
+            [349.0, 182.0],
+            [356.0, 164.0],
+            [357.0, 168.0]
+        ]));
+        assert!(!plausible_square(&[
+            [0.0, 0.0],
+            [20.0, 20.0],
+            [20.0, 0.0],
+            [0.0, 20.0]
+        ]));
+        // Too small to read: 5 pixels a side.
+        assert!(!plausible_square(&[
+            [0.0, 0.0],
+            [5.0, 0.0],
+            [5.0, 5.0],
+            [0.0, 5.0]
+        ]));
+    }
 }

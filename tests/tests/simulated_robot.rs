@@ -1,0 +1,80 @@
+//! A virtual robot walks seq06 and streams over real zenoh to the real server, which reports
+//! every frame and the markers it detected: those the robot had in view, and no others.
+
+use std::collections::BTreeSet;
+use std::sync::Arc;
+use std::time::Duration;
+use vsgraphs_sdk::player::Rate;
+use vsgraphs_sdk::simulated::{self, SimOptions};
+use vsgraphs_sdk::{Delivery, Robot, RobotConfig};
+use vsgraphs_sim::scenarios::Scenario;
+use vsgraphs_sim::{Building, Renderer};
+use vsgraphs_tests::*;
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_simulated_robot_streams_seq06_and_the_server_reports_its_frames_and_markers() {
+    let test = TestServer::start().await;
+    let scenario = Scenario::builtin("seq06").unwrap();
+    let building = Building::from_plan(&scenario.plan).unwrap();
+    let renderer = Arc::new(Renderer::new(
+        &scenario.plan,
+        &building,
+        scenario.render.clone(),
+        1,
+    ));
+    let walk = Arc::new(scenario.walks().unwrap().remove(0));
+    let frames = 240;
+    // Markers squarely in view and near in the frames sent: the server must find each.
+    let mut expected = BTreeSet::new();
+    for pose in &walk.world_from_camera[..frames] {
+        expected.extend(renderer.visible_markers(&building, pose, 2.5, 45.0));
+    }
+    assert!(
+        expected.len() >= 3,
+        "the first frames show markers: {expected:?}"
+    );
+
+    let mut config = RobotConfig::connecting_to("sim-1", &test.zenoh_endpoint);
+    config.delivery = Delivery::Reliable;
+    let robot = Robot::connect(config).await.unwrap();
+    let options = SimOptions {
+        rate: Rate::Max,
+        limit: Some(frames),
+        ..SimOptions::default()
+    };
+    let summary = simulated::stream(&robot, renderer.clone(), walk.clone(), &options, |_, _| {})
+        .await
+        .unwrap();
+    assert_eq!(summary.frames_sent, frames as u64);
+
+    let status = wait_for("every frame processed", Duration::from_secs(60), || async {
+        let status = test.client.robot("sim-1").await.ok()?;
+        let f = &status.frames;
+        (f.processed + f.dropped + f.rejected >= frames as u64).then_some(status)
+    })
+    .await;
+    assert_eq!(
+        status.frames.processed, frames as u64,
+        "{:?}",
+        status.frames
+    );
+    let detected: BTreeSet<u32> = status
+        .markers_detected
+        .keys()
+        .map(|&id| id as u32)
+        .collect();
+    let building_ids: BTreeSet<u32> = building.markers.iter().map(|m| m.id).collect();
+    assert!(
+        detected.is_subset(&building_ids),
+        "detected {detected:?}, building {building_ids:?}"
+    );
+    assert!(
+        expected.is_subset(&detected),
+        "in view {expected:?}, detected {detected:?}"
+    );
+    eprintln!(
+        "{frames} frames; markers in view {expected:?}; detected (id: frames) {:?}",
+        status.markers_detected
+    );
+    robot.close().await.unwrap();
+}
