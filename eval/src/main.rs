@@ -1,10 +1,13 @@
 //! `vsgraphs-eval`: evaluation tools.
 
+use anyhow::Context;
 use clap::{Parser, Subcommand, ValueEnum};
 use std::path::PathBuf;
 use vsgraphs_eval::metrics::{Alignment, Compare, Relation};
 use vsgraphs_eval::posegraph;
 use vsgraphs_eval::score::{self, Metric};
+use vsgraphs_eval::semantics::{self, MapAlignment};
+use vsgraphs_proto::model::BuildingModel;
 use vsgraphs_sgraph::factors::pose::PoseError;
 use vsgraphs_sgraph::{Method, Options};
 
@@ -98,6 +101,12 @@ impl CompareArgs {
     }
 }
 
+#[derive(Clone, Copy, ValueEnum)]
+enum MapAlignArg {
+    Markers,
+    None,
+}
+
 #[derive(Subcommand)]
 enum Command {
     /// Absolute trajectory error of an estimate against a reference (TUM files), as evo_ape.
@@ -114,6 +123,21 @@ enum Command {
         /// Every pair (i, i + delta) instead of consecutive ones.
         #[arg(long)]
         all_pairs: bool,
+    },
+    /// Semantic accuracy of a building model (JSON) against ground truth (e.g. a simulator's
+    /// ground_truth.json): walls, doorways, rooms and corridors matched one to one.
+    Semantics {
+        /// The reference model.
+        ground_truth: PathBuf,
+        /// The model to score.
+        map: PathBuf,
+        /// markers: align the map to the reference by the markers both hold; none: they share
+        /// a frame.
+        #[arg(long, value_enum, default_value = "markers")]
+        align: MapAlignArg,
+        /// Print JSON instead of the table.
+        #[arg(long)]
+        json: bool,
     },
     /// Optimise a g2o pose graph (VERTEX_SE3:QUAT / EDGE_SE3:QUAT) and print cost per iteration.
     Posegraph {
@@ -144,6 +168,34 @@ fn main() -> anyhow::Result<()> {
             delta,
             all_pairs,
         } => args.run(Metric::Rpe { delta, all_pairs })?,
+        Command::Semantics {
+            ground_truth,
+            map,
+            align,
+            json,
+        } => {
+            let read = |path: &PathBuf| -> anyhow::Result<BuildingModel> {
+                let text = std::fs::read_to_string(path)
+                    .with_context(|| format!("reading {}", path.display()))?;
+                serde_json::from_str(&text)
+                    .with_context(|| format!("{} is not a building model", path.display()))
+            };
+            let alignment = match align {
+                MapAlignArg::Markers => MapAlignment::Markers,
+                MapAlignArg::None => MapAlignment::None,
+            };
+            let report = semantics::score(
+                &read(&ground_truth)?,
+                &read(&map)?,
+                alignment,
+                &semantics::Gates::default(),
+            )?;
+            if json {
+                println!("{}", serde_json::to_string_pretty(&report)?);
+            } else {
+                semantics::print_table(&report);
+            }
+        }
         Command::Posegraph {
             input,
             output,

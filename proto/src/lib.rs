@@ -7,6 +7,7 @@
 
 pub mod api;
 pub mod keys;
+pub mod model;
 pub mod png16;
 pub mod rvl;
 
