@@ -232,6 +232,22 @@ impl Painter<'_> {
         )
     }
 
+    /// Blends `grey` into texel (x, y) by the fraction `coverage` of it the shape covers.
+    /// Anti-aliased edges keep a magnified texture smooth: hard texel edges would read as rows
+    /// of identical stair-step corners to a feature detector.
+    fn blend(&mut self, x: usize, y: usize, grey: f32, coverage: f64) {
+        if coverage > 0.0 {
+            let texel = &mut self.albedo[y * self.width + x];
+            *texel += (grey - *texel) * coverage.min(1.0) as f32;
+        }
+    }
+
+    /// Texels covering `rect`, one texel wider on each side for the anti-aliased edge.
+    fn span_with_edge(&self, rect: Keepout) -> (std::ops::Range<usize>, std::ops::Range<usize>) {
+        let t = self.texel;
+        self.span([rect[0] - t, rect[1] + t, rect[2] - t, rect[3] + t])
+    }
+
     fn block(&mut self, centre: [f64; 2], half: [f64; 2], grey: f32) {
         let rect = [
             centre[0] - half[0],
@@ -242,10 +258,15 @@ impl Painter<'_> {
         if !self.clear(rect) {
             return;
         }
-        let (xs, ys) = self.span(rect);
+        let t = self.texel;
+        // Fraction of a texel's extent [a, a + t] inside [lo, hi].
+        let overlap = |a: f64, lo: f64, hi: f64| ((a + t).min(hi) - a.max(lo)).max(0.0) / t;
+        let (xs, ys) = self.span_with_edge(rect);
         for y in ys {
+            let fy = overlap(y as f64 * t, rect[2], rect[3]);
             for x in xs.clone() {
-                self.albedo[y * self.width + x] = grey;
+                let coverage = overlap(x as f64 * t, rect[0], rect[1]) * fy;
+                self.blend(x, y, grey, coverage);
             }
         }
     }
@@ -260,14 +281,14 @@ impl Painter<'_> {
         if !self.clear(rect) {
             return;
         }
-        let (xs, ys) = self.span(rect);
+        let (xs, ys) = self.span_with_edge(rect);
         for y in ys {
             for x in xs.clone() {
                 let du = (x as f64 + 0.5) * self.texel - centre[0];
                 let dv = (y as f64 + 0.5) * self.texel - centre[1];
-                if du * du + dv * dv <= radius * radius {
-                    self.albedo[y * self.width + x] = grey;
-                }
+                // Coverage from the signed distance to the rim, over one texel.
+                let inside = radius - (du * du + dv * dv).sqrt();
+                self.blend(x, y, grey, (0.5 + inside / self.texel).clamp(0.0, 1.0));
             }
         }
     }
@@ -287,43 +308,58 @@ impl Painter<'_> {
         let cell = random.range(0.03, 0.08);
         let seed = random.next_u64() as i64;
         let frame = 0.015;
-        let (xs, ys) = self.span(rect);
+        let picture = |u: f64, v: f64| -> f64 {
+            // A light frame, and no black blocks: a dark square outline with a grid of dark
+            // cells inside is what a marker detector looks for.
+            if u < frame || v < frame || w - u < frame || h - v < frame {
+                return 150.0;
+            }
+            match kind {
+                0 => {
+                    let (i, j) = ((u / cell).floor() as i64, (v / (cell * 1.3)).floor() as i64);
+                    75.0 + 160.0 * noise.lattice(i + seed, j, 41)
+                }
+                1 => {
+                    // Wavy, irregular stripes: straight periodic ones are a row of identical
+                    // corners that no descriptor can tell apart.
+                    let warp = 2.5 * noise.fbm(u / 0.15, v / 0.15, 2);
+                    let stripe = (u * 1.7 + v * 0.6) / cell + warp;
+                    let width = 0.3 + 0.5 * noise.lattice(stripe.floor() as i64 + seed, 0, 42);
+                    if stripe.fract() < width {
+                        45.0
+                    } else {
+                        225.0
+                    }
+                }
+                _ => {
+                    let n = noise.fbm(u / cell + seed as f64 * 1e-3, v / cell, 2);
+                    if n > 0.5 {
+                        230.0
+                    } else {
+                        50.0
+                    }
+                }
+            }
+        };
+        // 3 × 3 samples per texel: the picture's edges are anti-aliased like the stickers'.
+        let t = self.texel;
+        let (xs, ys) = self.span_with_edge(rect);
         for y in ys {
             for x in xs.clone() {
-                let u = (x as f64 + 0.5) * self.texel - u0;
-                let v = (y as f64 + 0.5) * self.texel - v0;
-                // A light frame, and no black blocks: a dark square outline with a grid of
-                // dark cells inside is what a marker detector looks for.
-                let grey = if u < frame || v < frame || w - u < frame || h - v < frame {
-                    150.0
-                } else {
-                    match kind {
-                        0 => {
-                            let (i, j) =
-                                ((u / cell).floor() as i64, (v / (cell * 1.3)).floor() as i64);
-                            75.0 + 160.0 * noise.lattice(i + seed, j, 41)
-                        }
-                        1 => {
-                            let stripe = (u * 1.7 + v * 0.6) / cell;
-                            let width =
-                                0.3 + 0.5 * noise.lattice(stripe.floor() as i64 + seed, 0, 42);
-                            if stripe.fract() < width {
-                                45.0
-                            } else {
-                                225.0
-                            }
-                        }
-                        _ => {
-                            let n = noise.fbm(u / cell + seed as f64 * 1e-3, v / cell, 2);
-                            if n > 0.5 {
-                                230.0
-                            } else {
-                                50.0
-                            }
+                let (mut sum, mut inside) = (0.0, 0usize);
+                for sy in 0..3 {
+                    for sx in 0..3 {
+                        let u = (x as f64 + (sx as f64 + 0.5) / 3.0) * t - u0;
+                        let v = (y as f64 + (sy as f64 + 0.5) / 3.0) * t - v0;
+                        if (0.0..w).contains(&u) && (0.0..h).contains(&v) {
+                            sum += picture(u, v);
+                            inside += 1;
                         }
                     }
-                };
-                self.albedo[y * self.width + x] = grey as f32;
+                }
+                if inside > 0 {
+                    self.blend(x, y, (sum / inside as f64) as f32, inside as f64 / 9.0);
+                }
             }
         }
     }

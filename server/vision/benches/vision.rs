@@ -9,6 +9,10 @@ use vsgraphs_vision::camera::PinholeCamera;
 use vsgraphs_vision::decode;
 use vsgraphs_vision::depth::DepthImage;
 use vsgraphs_vision::dictionary::MarkerDictionary;
+use vsgraphs_vision::opencv::core::{no_array, KeyPoint, Mat, Vector};
+use vsgraphs_vision::opencv::features2d::{ORB_ScoreType, ORB};
+use vsgraphs_vision::opencv::prelude::*;
+use vsgraphs_vision::orb::{OrbExtractor, OrbParams};
 use vsgraphs_vision::pose::PoseEstimator;
 use vsgraphs_vision::synth::{render, PlacedMarker};
 
@@ -34,6 +38,25 @@ fn vision(c: &mut Criterion) {
         });
         c.bench_function("png16_decode_opencv_640x480", |b| {
             b.iter(|| decode::depth(DepthEncoding::Png16 as i32, &png, 640, 480, 1000.0).unwrap())
+        });
+        // ORB features of a real frame: ours (cells + quadtree, as ORB-SLAM) against OpenCV's
+        // ORB with the same budget and pyramid.
+        let grey = decode::colour_to_grey(&colour, 640, 480).unwrap();
+        let depth = decode::depth(DepthEncoding::Png16 as i32, &png, 640, 480, 1000.0).unwrap();
+        let mut extractor = OrbExtractor::new(OrbParams::default()).unwrap();
+        c.bench_function("orb_slam_extract_1000_640x480", |b| {
+            b.iter(|| extractor.extract(&grey, Some((&depth, 30.0))).unwrap())
+        });
+        let mut orb =
+            ORB::create(1000, 1.2, 8, 19, 0, 2, ORB_ScoreType::HARRIS_SCORE, 31, 20).unwrap();
+        c.bench_function("opencv_orb_detect_and_compute_1000_640x480", |b| {
+            b.iter(|| {
+                let mut keypoints = Vector::<KeyPoint>::new();
+                let mut descriptors = Mat::default();
+                orb.detect_and_compute(&grey, &no_array(), &mut keypoints, &mut descriptors, false)
+                    .unwrap();
+                descriptors
+            })
         });
     } else {
         eprintln!(

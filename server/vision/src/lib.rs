@@ -9,6 +9,7 @@ pub mod camera;
 pub mod decode;
 pub mod depth;
 pub mod dictionary;
+pub mod orb;
 pub mod pose;
 pub mod synth;
 

@@ -1,0 +1,472 @@
+//! ORB features spread over the image as ORB-SLAM extracts them: an image pyramid, FAST corners
+//! searched cell by cell (a strict threshold first, a lenient one where a cell has none), a
+//! quadtree that keeps the strongest corner of each region, intensity-centroid orientation,
+//! and rotated BRIEF descriptors. Each feature then gets the depth under it and the
+//! x-coordinate it would have in a virtual right image of a stereo pair with the camera's
+//! baseline (what RGB-D tracking uses as a third measurement).
+//!
+//! OpenCV's own ORB ranks corners over the whole image by score, so textured regions take most
+//! of the budget and plain ones get none; the cells and the quadtree keep features everywhere
+//! there is texture, which tracking needs (see `tests` and BENCHMARKS.md for the measured
+//! difference).
+
+use crate::depth::DepthImage;
+use crate::CvError;
+use opencv::core::{KeyPoint, Mat, Rect, Size, Vector};
+use opencv::features2d::{ORB_ScoreType, ORB};
+use opencv::imgproc;
+use opencv::prelude::*;
+
+/// Extraction settings. Defaults are ORB-SLAM's for RGB-D.
+#[derive(Clone, Debug, PartialEq)]
+pub struct OrbParams {
+    pub features: usize,
+    pub scale_factor: f64,
+    pub levels: usize,
+    /// FAST thresholds: tried first in every cell, then where a cell found nothing.
+    pub fast_threshold: i32,
+    pub fast_min_threshold: i32,
+}
+
+impl Default for OrbParams {
+    fn default() -> Self {
+        Self {
+            features: 1000,
+            scale_factor: 1.2,
+            levels: 8,
+            fast_threshold: 20,
+            fast_min_threshold: 7,
+        }
+    }
+}
+
+/// Side of the square patch a descriptor and an orientation are computed on, pixels.
+const PATCH: i32 = 31;
+const HALF_PATCH: i32 = 15;
+/// Corners closer than this to a level's border are not searched (room for the patch).
+const BORDER: i32 = 16;
+/// Side of a FAST search cell, pixels of its level.
+const CELL: i32 = 30;
+/// FAST needs 3 pixels around the pixel it tests.
+const FAST_MARGIN: i32 = 3;
+
+/// One feature, in level-0 pixel coordinates.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Feature {
+    pub x: f32,
+    pub y: f32,
+    /// Pyramid level it was found on.
+    pub octave: i32,
+    /// Orientation, degrees in [0, 360) (OpenCV's convention).
+    pub angle: f32,
+    pub response: f32,
+    /// Depth at the feature, metres, when the depth image has it.
+    pub depth: Option<f32>,
+    /// Its x in the virtual right image: `x − f·B / depth`.
+    pub right_x: Option<f32>,
+}
+
+/// Features and their 256-bit descriptors (row i of `descriptors` belongs to `features[i]`).
+pub struct Extraction {
+    pub features: Vec<Feature>,
+    /// N × 32 bytes, CV_8U.
+    pub descriptors: Mat,
+}
+
+/// An extractor; holds OpenCV objects, so each thread owns its own.
+pub struct OrbExtractor {
+    params: OrbParams,
+    /// Features wanted per level: a geometric series over the levels' areas.
+    per_level: Vec<usize>,
+    scales: Vec<f64>,
+    /// For the orientation: half-width of the circular patch at each row offset.
+    circle: Vec<i32>,
+    describer: opencv::core::Ptr<ORB>,
+}
+
+impl OrbExtractor {
+    pub fn new(params: OrbParams) -> Result<Self, CvError> {
+        let levels = params.levels.max(1);
+        let scales: Vec<f64> = (0..levels)
+            .map(|i| params.scale_factor.powi(i as i32))
+            .collect();
+        // Level i holds 1/s^(2i) of the pixels; share the budget in proportion to 1/s^i, as
+        // ORB-SLAM does (its side, not its area: finer levels keep more).
+        let factor = 1.0 / params.scale_factor;
+        let first = params.features as f64 * (1.0 - factor) / (1.0 - factor.powi(levels as i32));
+        let mut per_level: Vec<usize> = (0..levels)
+            .map(|i| (first * factor.powi(i as i32)).round() as usize)
+            .collect();
+        let assigned: usize = per_level[..levels - 1].iter().sum();
+        per_level[levels - 1] = params.features.saturating_sub(assigned);
+        let circle = (0..=HALF_PATCH)
+            .map(|dy| {
+                let r = f64::from(HALF_PATCH) + 0.5;
+                ((r * r - f64::from(dy * dy)).max(0.0).sqrt()).floor() as i32
+            })
+            .collect();
+        // OpenCV's ORB computes the rotated-BRIEF descriptors of the keypoints we give it, on its
+        // own pyramid of the same shape; its edge threshold matches our border.
+        let describer = ORB::create(
+            params.features as i32,
+            params.scale_factor as f32,
+            levels as i32,
+            BORDER,
+            0,
+            2,
+            ORB_ScoreType::HARRIS_SCORE,
+            PATCH,
+            params.fast_threshold,
+        )?;
+        Ok(Self {
+            params,
+            per_level,
+            scales,
+            circle,
+            describer,
+        })
+    }
+
+    pub fn params(&self) -> &OrbParams {
+        &self.params
+    }
+
+    /// Extracts features from an 8-bit grey image; with `depth` and the camera's focal length
+    /// times baseline (`fx · B`, pixel·metres), also their depth and right-image x.
+    pub fn extract(
+        &mut self,
+        grey: &Mat,
+        depth: Option<(&DepthImage, f64)>,
+    ) -> Result<Extraction, CvError> {
+        let mut keypoints = Vector::<KeyPoint>::new();
+        // Orientation reads the pixels directly, which needs them in one block.
+        let owned;
+        let grey = if grey.is_continuous() {
+            grey
+        } else {
+            owned = grey.try_clone()?;
+            &owned
+        };
+        let mut resized = Mat::default();
+        for (level, &scale) in self.scales.iter().enumerate() {
+            let level_image = if level == 0 {
+                grey
+            } else {
+                let size = grey.size()?;
+                imgproc::resize(
+                    grey,
+                    &mut resized,
+                    Size::new(
+                        (f64::from(size.width) / scale).round() as i32,
+                        (f64::from(size.height) / scale).round() as i32,
+                    ),
+                    0.0,
+                    0.0,
+                    imgproc::INTER_LINEAR,
+                )?;
+                &resized
+            };
+            let corners = self.corners_of_level(level_image)?;
+            let kept = distribute(corners, self.per_level[level], &level_image.size()?);
+            let size = PATCH as f32 * scale as f32;
+            for corner in kept {
+                let angle = self.orientation(level_image, corner.x, corner.y)?;
+                keypoints.push(KeyPoint::new_coords(
+                    corner.x as f32 * scale as f32,
+                    corner.y as f32 * scale as f32,
+                    size,
+                    angle,
+                    corner.response,
+                    level as i32,
+                    -1,
+                )?);
+            }
+        }
+        let mut descriptors = Mat::default();
+        self.describer
+            .compute(grey, &mut keypoints, &mut descriptors)?;
+        let features = keypoints
+            .iter()
+            .map(|k| {
+                let (x, y) = (k.pt().x, k.pt().y);
+                let depth_m = depth.and_then(|(image, _)| {
+                    image
+                        .metres_at(x.round() as u32, y.round() as u32)
+                        .map(|z| z as f32)
+                });
+                let right_x = depth
+                    .zip(depth_m)
+                    .map(|((_, focal_baseline), z)| x - (focal_baseline / f64::from(z)) as f32);
+                Feature {
+                    x,
+                    y,
+                    octave: k.octave(),
+                    angle: k.angle(),
+                    response: k.response(),
+                    depth: depth_m,
+                    right_x,
+                }
+            })
+            .collect();
+        Ok(Extraction {
+            features,
+            descriptors,
+        })
+    }
+
+    /// FAST corners of one level, cell by cell: a cell keeps its corners that pass the strict
+    /// threshold, or, when it has none, those that pass the lenient one. FAST runs once over the
+    /// level at the lenient threshold; a corner's score is the highest threshold it passes, and
+    /// non-maximum suppression only compares corners' scores, so this keeps exactly what
+    /// searching each cell twice would.
+    fn corners_of_level(&self, image: &Mat) -> Result<Vec<Corner>, CvError> {
+        let (width, height) = (image.cols(), image.rows());
+        let (x0, y0, x1, y1) = (BORDER, BORDER, width - BORDER, height - BORDER);
+        if x1 <= x0 + 2 * FAST_MARGIN || y1 <= y0 + 2 * FAST_MARGIN {
+            return Ok(Vec::new());
+        }
+        let columns = ((x1 - x0) / CELL).max(1);
+        let rows = ((y1 - y0) / CELL).max(1);
+        let (cell_w, cell_h) = (
+            ((x1 - x0) as f64 / f64::from(columns)).ceil() as i32,
+            ((y1 - y0) as f64 / f64::from(rows)).ceil() as i32,
+        );
+        let region = Rect::new(
+            x0 - FAST_MARGIN,
+            y0 - FAST_MARGIN,
+            x1 - x0 + 2 * FAST_MARGIN,
+            y1 - y0 + 2 * FAST_MARGIN,
+        );
+        let roi = Mat::roi(image, region)?;
+        let mut found = Vector::<KeyPoint>::new();
+        opencv::features2d::fast(&roi, &mut found, self.params.fast_min_threshold, true)?;
+        let mut cells: Vec<Vec<Corner>> = vec![Vec::new(); (columns * rows) as usize];
+        for k in found.iter() {
+            let (x, y) = (k.pt().x as i32 + region.x, k.pt().y as i32 + region.y);
+            if (x0..x1).contains(&x) && (y0..y1).contains(&y) {
+                let cell = ((y - y0) / cell_h).min(rows - 1) * columns
+                    + ((x - x0) / cell_w).min(columns - 1);
+                cells[cell as usize].push(Corner {
+                    x,
+                    y,
+                    response: k.response(),
+                });
+            }
+        }
+        let strict = self.params.fast_threshold as f32;
+        let mut corners = Vec::with_capacity(found.len());
+        for cell in cells {
+            if cell.iter().any(|c| c.response >= strict) {
+                corners.extend(cell.into_iter().filter(|c| c.response >= strict));
+            } else {
+                corners.extend(cell);
+            }
+        }
+        Ok(corners)
+    }
+
+    /// Orientation of the patch around (x, y) by its intensity centroid, degrees in [0, 360).
+    /// (x, y) is at least `BORDER` pixels inside the image, so the patch is whole.
+    fn orientation(&self, image: &Mat, x: i32, y: i32) -> Result<f32, CvError> {
+        let step = image.step1(0)? as isize;
+        let pixels = image.data_bytes()?;
+        let centre = y as isize * step + x as isize;
+        let at = |dx: i32, dy: i32| {
+            i64::from(pixels[(centre + dy as isize * step + dx as isize) as usize])
+        };
+        let (mut m01, mut m10) = (0i64, 0i64);
+        for dx in -HALF_PATCH..=HALF_PATCH {
+            m10 += i64::from(dx) * at(dx, 0);
+        }
+        for dy in 1..=HALF_PATCH {
+            let half = self.circle[dy as usize];
+            let mut column_sum = 0i64;
+            for dx in -half..=half {
+                let (below, above) = (at(dx, dy), at(dx, -dy));
+                column_sum += below - above;
+                m10 += i64::from(dx) * (below + above);
+            }
+            m01 += i64::from(dy) * column_sum;
+        }
+        let angle = (m01 as f64).atan2(m10 as f64).to_degrees();
+        Ok((if angle < 0.0 { angle + 360.0 } else { angle }) as f32)
+    }
+}
+
+/// A FAST corner in its level's pixels.
+#[derive(Clone, Copy, Debug)]
+struct Corner {
+    x: i32,
+    y: i32,
+    response: f32,
+}
+
+/// A quadtree node: a region and the corners in it.
+struct Node {
+    x0: f32,
+    y0: f32,
+    x1: f32,
+    y1: f32,
+    corners: Vec<Corner>,
+}
+
+impl Node {
+    fn split(self) -> [Node; 4] {
+        let (mx, my) = ((self.x0 + self.x1) / 2.0, (self.y0 + self.y1) / 2.0);
+        let mut children = [
+            Node {
+                x0: self.x0,
+                y0: self.y0,
+                x1: mx,
+                y1: my,
+                corners: Vec::new(),
+            },
+            Node {
+                x0: mx,
+                y0: self.y0,
+                x1: self.x1,
+                y1: my,
+                corners: Vec::new(),
+            },
+            Node {
+                x0: self.x0,
+                y0: my,
+                x1: mx,
+                y1: self.y1,
+                corners: Vec::new(),
+            },
+            Node {
+                x0: mx,
+                y0: my,
+                x1: self.x1,
+                y1: self.y1,
+                corners: Vec::new(),
+            },
+        ];
+        for c in self.corners {
+            let (x, y) = (c.x as f32, c.y as f32);
+            let index = usize::from(x >= mx) + 2 * usize::from(y >= my);
+            children[index].corners.push(c);
+        }
+        children
+    }
+}
+
+/// Keeps up to `wanted` corners (at least `wanted − 3` when there are enough) spread over the
+/// image: regions are split in four, most crowded first, until another split could make more
+/// than `wanted` of them or none can split; each region keeps its strongest corner.
+fn distribute(corners: Vec<Corner>, wanted: usize, size: &Size) -> Vec<Corner> {
+    if corners.is_empty() || wanted == 0 {
+        return Vec::new();
+    }
+    let (width, height) = (size.width as f32, size.height as f32);
+    // Square-ish roots side by side, as many as the image is wider than tall.
+    let roots = (width / height).round().max(1.0) as usize;
+    let root_width = width / roots as f32;
+    let mut nodes: Vec<Node> = (0..roots)
+        .map(|i| Node {
+            x0: root_width * i as f32,
+            y0: 0.0,
+            x1: root_width * (i + 1) as f32,
+            y1: height,
+            corners: Vec::new(),
+        })
+        .collect();
+    for c in corners {
+        let index = ((c.x as f32 / root_width) as usize).min(roots - 1);
+        nodes[index].corners.push(c);
+    }
+    nodes.retain(|n| !n.corners.is_empty());
+    loop {
+        // A split adds up to three regions; stop before it could overshoot.
+        if nodes.len() + 3 > wanted {
+            break;
+        }
+        // Split the most crowded region that can still be split.
+        let Some(index) = nodes
+            .iter()
+            .enumerate()
+            .filter(|(_, n)| n.corners.len() > 1 && n.x1 - n.x0 > 1.0)
+            .max_by_key(|(_, n)| n.corners.len())
+            .map(|(i, _)| i)
+        else {
+            break;
+        };
+        let node = nodes.swap_remove(index);
+        nodes.extend(node.split().into_iter().filter(|n| !n.corners.is_empty()));
+    }
+    let kept: Vec<Corner> = nodes
+        .into_iter()
+        .map(|n| {
+            n.corners
+                .into_iter()
+                .max_by(|a, b| a.response.total_cmp(&b.response))
+                .expect("nodes hold corners")
+        })
+        .collect();
+    kept
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_budget_is_shared_over_levels_and_adds_up() {
+        let extractor = OrbExtractor::new(OrbParams::default()).unwrap();
+        assert_eq!(extractor.per_level.iter().sum::<usize>(), 1000);
+        // Each level gets 1/1.2 of the one below.
+        for pair in extractor.per_level.windows(2).take(6) {
+            let ratio = pair[0] as f64 / pair[1] as f64;
+            assert!((ratio - 1.2).abs() < 0.05, "{ratio}");
+        }
+    }
+
+    #[test]
+    fn the_quadtree_keeps_the_strongest_corner_of_each_region() {
+        // A dense cluster in one corner and a few corners elsewhere: a score ranking would keep
+        // only the cluster; the quadtree keeps the lone ones too.
+        let mut corners: Vec<Corner> = (0..400)
+            .map(|i| Corner {
+                x: 20 + i % 20,
+                y: 20 + i / 20,
+                response: 100.0 + i as f32,
+            })
+            .collect();
+        let lone = [(600, 400), (600, 30), (30, 450)];
+        for (x, y) in lone {
+            corners.push(Corner {
+                x,
+                y,
+                response: 1.0,
+            });
+        }
+        let kept = distribute(corners, 20, &Size::new(640, 480));
+        assert!(kept.len() <= 20 && kept.len() >= 16, "{}", kept.len());
+        for (x, y) in lone {
+            assert!(kept.iter().any(|c| (c.x, c.y) == (x, y)), "({x}, {y}) lost");
+        }
+        // Within the cluster, each kept corner is the strongest of its region: never the
+        // weakest corner of the cluster.
+        assert!(!kept.iter().any(|c| c.response == 100.0));
+    }
+
+    #[test]
+    fn orientation_points_to_the_bright_side() {
+        let extractor = OrbExtractor::new(OrbParams::default()).unwrap();
+        // Bright to the right (+x): 0°; bright below (+y): 90°.
+        let mut right =
+            Mat::new_rows_cols_with_default(64, 64, opencv::core::CV_8UC1, 0.into()).unwrap();
+        let mut below = right.clone();
+        for y in 0..64 {
+            for x in 0..64 {
+                *right.at_2d_mut::<u8>(y, x).unwrap() = if x > 32 { 200 } else { 20 };
+                *below.at_2d_mut::<u8>(y, x).unwrap() = if y > 32 { 200 } else { 20 };
+            }
+        }
+        let a = extractor.orientation(&right, 32, 32).unwrap();
+        let b = extractor.orientation(&below, 32, 32).unwrap();
+        assert!(a.abs() < 1.0 || (a - 360.0).abs() < 1.0, "{a}");
+        assert!((b - 90.0).abs() < 1.0, "{b}");
+    }
+}
