@@ -36,6 +36,10 @@ function renderRobots(robots) {
     cell(row, f.lost);
     cell(row, `${fmt(robot.timing.rate_hz)} Hz`);
     cell(row, `${fmt(robot.timing.latency_ms_mean)} ms`);
+    // Distinct marker ids detected so far; hover for how many frames each was in.
+    const seen = Object.entries(robot.markers_detected || {});
+    cell(row, seen.length);
+    row.cells[row.cells.length - 1].title = seen.map(([id, n]) => `${id}: ${n} frames`).join("\n");
   }
   const current = robots.find((r) => r.robot_id === selected);
   const rejection = current && current.last_rejection;

@@ -210,6 +210,10 @@ fn waypoints(
             space: name.to_owned(),
         })
     };
+    // Every space named, before any door between them is looked for.
+    for visit in &route.visits {
+        space_of(&visit.space)?;
+    }
     let start_space = space_of(&first.space)?;
     let mut points = vec![route.start.map_or_else(
         || (Vector2::from(start_space.min) + Vector2::from(start_space.max)) / 2.0,
