@@ -1,8 +1,9 @@
 //! Renders one view of a scenario to `view.png` / `view_depth.png` and times the renderer:
 //! `cargo run --release -p vsgraphs-sim --example render_view -- seq01 X Y YAW_DEG [RUNS]`.
 
-use nalgebra::{Isometry3, Matrix3, Rotation3, Translation3, UnitQuaternion, Vector3};
+use nalgebra::Vector3;
 use std::time::Instant;
+use vsgraphs_sim::walk::looking_at;
 use vsgraphs_sim::{images, scenarios, Building, RenderOptions, Renderer};
 
 fn main() -> anyhow::Result<()> {
@@ -23,17 +24,8 @@ fn main() -> anyhow::Result<()> {
         "scene built in {:.0} ms",
         start.elapsed().as_secs_f64() * 1e3
     );
-    let forward = Vector3::new(yaw.cos(), yaw.sin(), 0.0);
-    let down = -Vector3::z();
-    let rotation = Rotation3::from_matrix_unchecked(Matrix3::from_columns(&[
-        down.cross(&forward),
-        down,
-        forward,
-    ]));
-    let pose = Isometry3::from_parts(
-        Translation3::new(x, y, 1.0),
-        UnitQuaternion::from_rotation_matrix(&rotation),
-    );
+    let eye = Vector3::new(x, y, 1.0);
+    let pose = looking_at(eye, eye + Vector3::new(yaw.cos(), yaw.sin(), 0.0));
     let mut best = f64::MAX;
     let mut frame = None;
     for i in 0..runs.max(1) {

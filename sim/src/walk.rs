@@ -378,6 +378,26 @@ fn resample(path: &[Vector2<f64>], step: f64, speed: f64) -> Vec<[f64; 2]> {
         .collect()
 }
 
+/// The rotation of an OpenCV camera (x right, y down, z forward) looking along `forward`
+/// without roll: its x axis stays horizontal. `forward` must not be vertical.
+pub fn looking_along(forward: &Vector3<f64>) -> Rotation3<f64> {
+    let forward = forward.normalize();
+    let right = forward.cross(&Vector3::z()).normalize();
+    Rotation3::from_matrix_unchecked(Matrix3::from_columns(&[
+        right,
+        forward.cross(&right),
+        forward,
+    ]))
+}
+
+/// A camera at `eye` looking at `target`, without roll.
+pub fn looking_at(eye: Vector3<f64>, target: Vector3<f64>) -> Isometry3<f64> {
+    Isometry3::from_parts(
+        Translation3::from(eye),
+        UnitQuaternion::from_rotation_matrix(&looking_along(&(target - eye))),
+    )
+}
+
 /// A marker as the robot's attention sees it: where it hangs and which way it faces.
 #[derive(Clone, Copy, Debug)]
 pub(crate) struct Sign {
@@ -502,13 +522,7 @@ fn poses(
         };
         let height = motion.camera_height + motion.bob_amplitude * (step).sin().abs() * 2.0
             - motion.bob_amplitude;
-        let forward = Vector3::new(yaw.cos(), yaw.sin(), 0.0);
-        let down = -Vector3::z();
-        let level = Rotation3::from_matrix_unchecked(Matrix3::from_columns(&[
-            down.cross(&forward),
-            down,
-            forward,
-        ]));
+        let level = looking_along(&Vector3::new(yaw.cos(), yaw.sin(), 0.0));
         // Pitch about the camera's x axis, roll about its z axis.
         let tilt = Rotation3::from_euler_angles(pitch, 0.0, 0.0)
             * Rotation3::from_euler_angles(0.0, 0.0, roll);

@@ -1,10 +1,11 @@
 //! The renderer checked against geometry: markers are found where they hang, depth is the
 //! ray–plane distance within the sensor model, and the bits are OpenCV's.
 
-use nalgebra::{Isometry3, Matrix3, Point3, Rotation3, Translation3, UnitQuaternion, Vector3};
+use nalgebra::{Point3, Vector3};
 use opencv::prelude::*;
 use vsgraphs_sim::aruco::Dictionary;
 use vsgraphs_sim::scenarios::scenario;
+use vsgraphs_sim::walk::looking_at;
 use vsgraphs_sim::{Building, RenderOptions, Renderer};
 use vsgraphs_vision::aruco::{CornerRefinement, MarkerDetector};
 use vsgraphs_vision::camera::PinholeCamera;
@@ -36,18 +37,6 @@ fn marker_bits_are_opencvs() {
             }
         }
     }
-}
-
-/// A camera at `eye` looking at `target`, level (no roll).
-fn looking_at(eye: Vector3<f64>, target: Vector3<f64>) -> Isometry3<f64> {
-    let forward = (target - eye).normalize();
-    let right = forward.cross(&Vector3::z()).normalize();
-    let down = forward.cross(&right);
-    let rotation = Rotation3::from_matrix_unchecked(Matrix3::from_columns(&[right, down, forward]));
-    Isometry3::from_parts(
-        Translation3::from(eye),
-        UnitQuaternion::from_rotation_matrix(&rotation),
-    )
 }
 
 fn vision_camera(options: &RenderOptions) -> PinholeCamera {

@@ -1,7 +1,7 @@
 //! `vsgraphs-robot`: stream recorded RGB-D sequences to a vsgraphs server like a robot would.
 
 use anyhow::Context;
-use clap::{Parser, Subcommand, ValueEnum};
+use clap::{Args, Parser, Subcommand, ValueEnum};
 use indicatif::{ProgressBar, ProgressStyle};
 use std::path::PathBuf;
 use vsgraphs_sdk::player::{self, PlayOptions, Rate};
@@ -26,6 +26,47 @@ enum DepthCodec {
     Raw16,
 }
 
+/// How frames travel to the server: the same for recorded and simulated robots.
+#[derive(Args)]
+struct StreamArgs {
+    /// zenoh endpoint of the server or a router; repeatable.
+    #[arg(long, default_value = "tcp/127.0.0.1:7447")]
+    connect: Vec<String>,
+    /// Also find the server by UDP multicast scouting.
+    #[arg(long)]
+    scout: bool,
+    /// realtime (the recording's or the walk's pace), max, or a frame rate in Hz.
+    #[arg(long, default_value = "realtime")]
+    rate: Rate,
+    /// Depth codec on the wire.
+    #[arg(long, value_enum, default_value = "rvl")]
+    depth_codec: DepthCodec,
+    /// Stop after this many frames (per robot).
+    #[arg(long)]
+    limit: Option<usize>,
+    /// Drop frames the network cannot take at once, as a live camera would (default at
+    /// real-time rate); otherwise wait so that every frame arrives.
+    #[arg(long)]
+    live: Option<bool>,
+    /// The server's HTTP address: at the end, print what it made of the frames.
+    #[arg(long)]
+    server: Option<String>,
+}
+
+impl StreamArgs {
+    fn zenoh(&self) -> ZenohSettings {
+        ZenohSettings {
+            connect: self.connect.clone(),
+            multicast_scouting: self.scout,
+            ..ZenohSettings::default()
+        }
+    }
+
+    fn live(&self) -> bool {
+        self.live.unwrap_or(self.rate != Rate::Max)
+    }
+}
+
 #[derive(Subcommand)]
 enum Command {
     /// Play a recorded sequence (TUM RGB-D or 7-Scenes layout).
@@ -35,34 +76,14 @@ enum Command {
         /// This robot's id (letters, digits, '-', '_', '.').
         #[arg(long, default_value = "robot-1")]
         robot_id: String,
-        /// zenoh endpoint of the server or a router; repeatable.
-        #[arg(long, default_value = "tcp/127.0.0.1:7447")]
-        connect: Vec<String>,
-        /// Also find the server by UDP multicast scouting.
-        #[arg(long)]
-        scout: bool,
-        /// realtime, max, or a frame rate in Hz.
-        #[arg(long, default_value = "realtime")]
-        rate: Rate,
-        /// Depth codec on the wire.
-        #[arg(long, value_enum, default_value = "rvl")]
-        depth_codec: DepthCodec,
+        #[command(flatten)]
+        stream: StreamArgs,
         /// Times to play the sequence; 0 repeats until interrupted.
         #[arg(long, default_value_t = 1)]
         loops: u32,
-        /// Stop after this many frames.
-        #[arg(long)]
-        limit: Option<usize>,
-        /// Drop frames the network cannot take at once, as a live camera would (default at
-        /// real-time rate); otherwise wait so that every frame arrives.
-        #[arg(long)]
-        live: Option<bool>,
         /// Keep the recorded timestamps instead of stamping from now.
         #[arg(long)]
         original_timestamps: bool,
-        /// The server's HTTP address: at the end, print what it made of the frames.
-        #[arg(long)]
-        server: Option<String>,
     },
     /// Walk a simulated building and stream what the camera sees: a built-in scenario
     /// (`vsgraphs-sim list`) or a scenario JSON file. Every robot of the scenario streams at
@@ -71,36 +92,20 @@ enum Command {
     Sim {
         /// A built-in scenario name or a scenario JSON file.
         scenario: String,
+        #[command(flatten)]
+        stream: StreamArgs,
         /// Stream only this robot of the scenario.
         #[arg(long)]
         robot: Option<String>,
         /// Prefix of the robot ids on the wire (ids are the scenario's robot names).
         #[arg(long, default_value = "")]
         id_prefix: String,
-        /// zenoh endpoint of the server or a router; repeatable.
-        #[arg(long, default_value = "tcp/127.0.0.1:7447")]
-        connect: Vec<String>,
-        /// Also find the server by UDP multicast scouting.
-        #[arg(long)]
-        scout: bool,
-        /// realtime (the walk's 30 Hz), max, or a frame rate in Hz.
-        #[arg(long, default_value = "realtime")]
-        rate: Rate,
-        /// Depth codec on the wire.
-        #[arg(long, value_enum, default_value = "rvl")]
-        depth_codec: DepthCodec,
-        /// Stop after this many frames per robot.
-        #[arg(long)]
-        limit: Option<usize>,
         /// Times to walk the route (each ends where it began); 0 repeats until interrupted.
         #[arg(long, default_value_t = 1)]
         loops: u32,
         /// The camera's frame rate (the scenario's, 30 Hz, by default).
         #[arg(long)]
         fps: Option<f64>,
-        /// Drop frames the network cannot take at once (default at real-time rate).
-        #[arg(long)]
-        live: Option<bool>,
         /// Seed of the building's textures and the sensor noise.
         #[arg(long, default_value_t = 1)]
         seed: u64,
@@ -108,9 +113,6 @@ enum Command {
         /// folder, as ROBOT.groundtruth.txt.
         #[arg(long)]
         ground_truth: Option<PathBuf>,
-        /// The server's HTTP address: at the end, print what it made of the frames.
-        #[arg(long)]
-        server: Option<String>,
     },
 }
 
@@ -156,31 +158,20 @@ async fn main() -> anyhow::Result<()> {
         Command::Play {
             dir,
             robot_id,
-            connect,
-            scout,
-            rate,
-            depth_codec,
+            stream,
             loops,
-            limit,
-            live,
             original_timestamps,
-            server,
         } => {
             let dataset =
                 dataset::open(&dir).with_context(|| format!("opening {}", dir.display()))?;
             for warning in &dataset.warnings {
                 eprintln!("warning: {warning}");
             }
-            let live = live.unwrap_or(rate != Rate::Max);
             let config = RobotConfig {
                 robot_id: robot_id.clone(),
                 session_id: None,
-                zenoh: ZenohSettings {
-                    connect,
-                    multicast_scouting: scout,
-                    ..ZenohSettings::default()
-                },
-                delivery: if live {
+                zenoh: stream.zenoh(),
+                delivery: if stream.live() {
                     Delivery::Live
                 } else {
                     Delivery::Reliable
@@ -200,10 +191,10 @@ async fn main() -> anyhow::Result<()> {
                 robot.session_id()
             );
             let options = PlayOptions {
-                rate,
-                depth_codec: depth_encoding(depth_codec),
+                rate: stream.rate,
+                depth_codec: depth_encoding(stream.depth_codec),
                 loops,
-                limit,
+                limit: stream.limit,
                 original_timestamps,
             };
             let bar = ProgressBar::new(0);
@@ -239,50 +230,40 @@ async fn main() -> anyhow::Result<()> {
             for (path, reason) in &summary.skipped {
                 println!("skipped {}: {reason}", path.display());
             }
-            if let Some(server) = server {
+            if let Some(server) = &stream.server {
                 // Let the last frames drain through the server's queue.
                 tokio::time::sleep(std::time::Duration::from_millis(500)).await;
-                report_server(&server, &robot_id).await?;
+                report_server(server, &robot_id).await?;
             }
             robot.close().await?;
         }
         #[cfg(feature = "sim")]
         Command::Sim {
             scenario,
+            stream,
             robot,
             id_prefix,
-            connect,
-            scout,
-            rate,
-            depth_codec,
-            limit,
             loops,
             fps,
-            live,
             seed,
             ground_truth,
-            server,
         } => {
             let options = SimCommand {
                 robot,
                 id_prefix,
-                zenoh: ZenohSettings {
-                    connect,
-                    multicast_scouting: scout,
-                    ..ZenohSettings::default()
-                },
-                live: live.unwrap_or(rate != Rate::Max),
+                zenoh: stream.zenoh(),
+                live: stream.live(),
                 sim: vsgraphs_sdk::simulated::SimOptions {
-                    rate,
-                    limit,
+                    rate: stream.rate,
+                    limit: stream.limit,
                     loops,
-                    depth_codec: depth_encoding(depth_codec),
+                    depth_codec: depth_encoding(stream.depth_codec),
                     ..Default::default()
                 },
                 fps,
                 seed,
                 ground_truth,
-                server,
+                server: stream.server,
             };
             sim::run(&scenario, options).await?;
         }
