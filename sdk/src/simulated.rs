@@ -3,12 +3,12 @@
 //!
 //! Frames are rendered and encoded on their own thread a few frames ahead of publishing. They
 //! are stamped with the stream's start time plus the walk's time, so that the ground truth
-//! ([`ground_truth_tum`]) and the server's trajectory share one clock.
+//! (`Walk::trajectory(start_ns as f64 * 1e-9, frames_sent)`) and the server's trajectory share
+//! one clock.
 
 use crate::encode::{self, EncodeError};
 use crate::player::Rate;
 use crate::robot::{now_ns, Robot, RobotError};
-use std::fmt::Write as _;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 use thiserror::Error;
@@ -90,37 +90,6 @@ pub fn camera_model(renderer: &Renderer) -> CameraModel {
     }
 }
 
-/// The walk's ground truth in TUM format for the first `frames` frames sent (laps repeat the
-/// walk), stamped as [`stream`] stamps them.
-pub fn ground_truth_tum(walk: &Walk, start_ns: u64, frames: usize) -> String {
-    let mut text = String::from("# timestamp tx ty tz qx qy qz qw\n");
-    let per_lap = walk.times.len();
-    let period = walk.times.get(1).copied().unwrap_or(1.0 / 30.0);
-    let lap_s = walk.times.last().copied().unwrap_or(0.0) + period;
-    for sent in 0..frames {
-        let (lap, index) = (sent / per_lap, sent % per_lap);
-        let t = lap as f64 * lap_s + walk.times[index];
-        let pose = &walk.world_from_camera[index];
-        let stamp = start_ns + (t * 1e9).round() as u64;
-        let p = pose.translation.vector;
-        let q = pose.rotation.quaternion();
-        let _ = writeln!(
-            text,
-            "{}.{:09} {:.9} {:.9} {:.9} {:.9} {:.9} {:.9} {:.9}",
-            stamp / 1_000_000_000,
-            stamp % 1_000_000_000,
-            p.x,
-            p.y,
-            p.z,
-            q.i,
-            q.j,
-            q.k,
-            q.w
-        );
-    }
-    text
-}
-
 struct Encoded {
     /// Frame number over all laps, and the walk's time of the frame over all laps.
     sent: u64,
@@ -142,7 +111,6 @@ pub async fn stream(
 ) -> Result<SimSummary, SimError> {
     let per_lap = walk.times.len();
     let period = walk.times.get(1).copied().unwrap_or(1.0 / 30.0);
-    let lap_s = walk.times.last().copied().unwrap_or(0.0) + period;
     let total = match (options.loops, options.limit) {
         (0, None) => None,
         (0, Some(limit)) => Some(limit as u64),
@@ -161,7 +129,7 @@ pub async fn stream(
                     if total.is_some_and(|t| sent >= t) {
                         return;
                     }
-                    let (lap, index) = (sent / per_lap as u64, (sent % per_lap as u64) as usize);
+                    let (index, time_s) = walk.lap_frame(sent as usize);
                     let started = Instant::now();
                     let frame = render_frame(&renderer, &walk, index);
                     let rendered = Instant::now();
@@ -181,7 +149,7 @@ pub async fn stream(
                         )?;
                         Ok(Encoded {
                             sent,
-                            time_s: lap as f64 * lap_s + walk.times[index],
+                            time_s,
                             colour,
                             depth,
                             render: rendered - started,

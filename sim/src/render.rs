@@ -285,7 +285,7 @@ impl Renderer {
         let exposure = (AUTO_EXPOSURE_TARGET / mean.max(1.0)).clamp(0.5, 2.0) * (1.0 + drift);
         let mut random = Random::derive(self.seed, 0xC010_0000 ^ index);
         let noise = self.options.image_noise as f32;
-        let tints: Vec<[f32; 3]> = self.scene.surfaces.iter().map(|s| s.tint).collect();
+        let surfaces = &self.scene.surfaces;
         let mut rgb = vec![0u8; w * h * 3];
         for (((out, g), hit), vignette) in rgb
             .chunks_exact_mut(3)
@@ -294,7 +294,9 @@ impl Renderer {
             .zip(&self.vignette)
         {
             let value = g * exposure as f32 * vignette;
-            let tint = tints.get(hit.surface as usize).unwrap_or(&[1.0; 3]);
+            let tint = surfaces
+                .get(hit.surface as usize)
+                .map_or(&[1.0; 3], |s| &s.tint);
             let noises = random.fast_normals3();
             for k in 0..3 {
                 out[k] = (value * tint[k] + noise * noises[k]).clamp(0.0, 255.0) as u8;

@@ -171,18 +171,12 @@ fn write_robot(
         .collect();
     let mut rgb_list = String::from("# colour images\n# timestamp filename\n");
     let mut depth_list = String::from("# depth maps\n# timestamp filename\n");
-    let mut truth = String::from("# ground truth trajectory\n# timestamp tx ty tz qx qy qz qw\n");
-    for (s, pose) in stamps.iter().zip(&walk.world_from_camera) {
+    for s in &stamps {
         let _ = writeln!(rgb_list, "{s} rgb/{s}.png");
         let _ = writeln!(depth_list, "{s} depth/{s}.png");
-        let t = pose.translation.vector;
-        let q = pose.rotation.quaternion();
-        let _ = writeln!(
-            truth,
-            "{s} {:.9} {:.9} {:.9} {:.9} {:.9} {:.9} {:.9}",
-            t.x, t.y, t.z, q.i, q.j, q.k, q.w
-        );
     }
+    // The same `{:.6}` seconds as the image names, so every pose names its frame exactly.
+    let truth = walk.trajectory(options.start_time_s, frames);
     // Images first, lists last: a sequence whose lists exist is complete.
     let next = AtomicUsize::new(0);
     let finished = AtomicUsize::new(0);
@@ -217,7 +211,7 @@ fn write_robot(
     if let Some(e) = failure.into_inner().unwrap_or_else(|p| p.into_inner()) {
         return Err(e);
     }
-    write_file(&dir.join("groundtruth.txt"), &truth)?;
+    write_file(&dir.join("groundtruth.txt"), &truth.to_tum())?;
     write_file(&dir.join("depth.txt"), &depth_list)?;
     write_file(&dir.join("rgb.txt"), &rgb_list)?;
     Ok(())

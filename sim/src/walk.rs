@@ -14,6 +14,7 @@ use crate::random::Random;
 use nalgebra::{Isometry3, Matrix3, Rotation3, Translation3, UnitQuaternion, Vector2, Vector3};
 use serde::{Deserialize, Serialize};
 use thiserror::Error;
+use vsgraphs_eval::trajectory::Trajectory;
 
 /// How a robot goes through one space.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -141,6 +142,27 @@ impl Walk {
             return self.world_from_camera[0];
         }
         self.world_from_camera[i].lerp_slerp(&self.world_from_camera[i + 1], f - i as f64)
+    }
+
+    /// Frame `sent` of the walk repeated lap after lap (a walk ends where it began): its index
+    /// in the walk, and its time since the first lap began, seconds.
+    pub fn lap_frame(&self, sent: usize) -> (usize, f64) {
+        let n = self.times.len();
+        let period = self.times.get(1).copied().unwrap_or(1.0 / 30.0);
+        let lap_s = self.times[n - 1] + period;
+        let (lap, index) = (sent / n, sent % n);
+        (index, lap as f64 * lap_s + self.times[index])
+    }
+
+    /// The true camera trajectory of the first `frames` frames sent (laps repeat), stamped
+    /// `start_s` plus each frame's time.
+    pub fn trajectory(&self, start_s: f64, frames: usize) -> Trajectory {
+        let mut trajectory = Trajectory::default();
+        for sent in 0..frames {
+            let (index, time) = self.lap_frame(sent);
+            trajectory.push(start_s + time, self.world_from_camera[index]);
+        }
+        trajectory
     }
 
     /// Length of the floor path, metres.

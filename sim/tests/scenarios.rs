@@ -278,3 +278,28 @@ fn broken_routes_are_refused_with_their_reason() {
         WalkError::Motion("speed")
     );
 }
+
+#[test]
+fn repeated_laps_keep_the_clock_running() {
+    let walk = Scenario::builtin("seq06")
+        .unwrap()
+        .walks()
+        .unwrap()
+        .remove(0);
+    let n = walk.times.len();
+    let period = walk.times[1];
+    // The second lap starts one frame period after the first ends, at the first pose.
+    assert_eq!(walk.lap_frame(n - 1), (n - 1, walk.times[n - 1]));
+    let (index, time) = walk.lap_frame(n);
+    assert_eq!(index, 0);
+    assert!((time - (walk.times[n - 1] + period)).abs() < 1e-12);
+    assert!((walk.lap_frame(n + 5).1 - time - walk.times[5]).abs() < 1e-12);
+    // The trajectory over two laps steps forward by one period everywhere.
+    let trajectory = walk.trajectory(100.0, 2 * n);
+    assert_eq!(trajectory.len(), 2 * n);
+    assert!(trajectory
+        .stamps
+        .windows(2)
+        .all(|w| (w[1] - w[0] - period).abs() < 1e-6));
+    assert_eq!(trajectory.poses[n], walk.world_from_camera[0]);
+}

@@ -387,11 +387,8 @@ mod sim {
                             std::fs::create_dir_all(dir)?;
                             let path = dir.join(format!("{robot_id}.groundtruth.txt"));
                             let frames = summary.frames_sent as usize;
-                            std::fs::write(
-                                &path,
-                                simulated::ground_truth_tum(&walk, summary.start_ns, frames),
-                            )
-                            .with_context(|| format!("writing {}", path.display()))?;
+                            walk.trajectory(summary.start_ns as f64 * 1e-9, frames)
+                                .write_tum(&path)?;
                         }
                         finished.push((robot_id, summary));
                     }
