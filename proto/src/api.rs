@@ -95,6 +95,70 @@ pub struct RobotStatus {
     /// was detected in.
     #[serde(default)]
     pub markers_detected: BTreeMap<i32, u64>,
+    /// Camera tracking (absent when the server's tracking is off or no frame was tracked yet).
+    #[serde(default)]
+    pub tracking: Option<TrackingStatus>,
+}
+
+/// What tracking knows about a robot.
+#[derive(Debug, Clone, Copy, Serialize, Deserialize, PartialEq, Eq)]
+#[cfg_attr(feature = "openapi", derive(ToSchema))]
+#[serde(rename_all = "snake_case")]
+pub enum TrackingState {
+    /// No map yet: waiting for a frame with enough texture and depth.
+    Initialising,
+    Tracking,
+    /// Tracking failed; relocalising (or a new map starts after a while).
+    Lost,
+    /// The camera model cannot be tracked (e.g. it has lens distortion; rectify images first).
+    UnsupportedCamera,
+}
+
+/// A rigid pose, `world_from_camera` in a map's frame.
+#[derive(Debug, Clone, Copy, Serialize, Deserialize, PartialEq)]
+#[cfg_attr(feature = "openapi", derive(ToSchema))]
+pub struct Pose {
+    pub translation_m: [f64; 3],
+    /// Unit quaternion (x, y, z, w).
+    pub rotation_xyzw: [f64; 4],
+}
+
+/// `RobotStatus.tracking`.
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+#[cfg_attr(feature = "openapi", derive(ToSchema))]
+pub struct TrackingStatus {
+    pub state: TrackingState,
+    /// The latest tracked pose (in map `map`), and the stamp of its frame (ns).
+    pub world_from_camera: Option<Pose>,
+    pub pose_timestamp_ns: Option<u64>,
+    /// Index of the robot's active map in its Atlas, and how many maps it has.
+    pub map: u32,
+    pub maps: u32,
+    /// Size of the active map.
+    pub keyframes: u64,
+    pub map_points: u64,
+    /// Map points the latest pose explains.
+    pub inliers: u64,
+    /// Frames given a pose, and frames that could not be (lost or before a map existed).
+    pub frames_tracked: u64,
+    pub frames_untracked: u64,
+    /// The latest notable event: a map started, tracking lost, relocalised.
+    pub last_event: Option<String>,
+    /// Mean time per frame over the recent window, ms: ORB features, tracking, and local
+    /// mapping (keyframe insertion, fusion and local bundle adjustment, on keyframes only).
+    pub features_ms_mean: Option<f64>,
+    pub tracking_ms_mean: Option<f64>,
+    pub mapping_ms_mean: Option<f64>,
+}
+
+/// One pose of `GET /api/v1/robots/{robot_id}/trajectory`.
+#[derive(Debug, Clone, Copy, Serialize, Deserialize, PartialEq)]
+#[cfg_attr(feature = "openapi", derive(ToSchema))]
+pub struct TrajectoryPose {
+    pub timestamp_ns: u64,
+    /// The map (index in the robot's Atlas) the pose is in.
+    pub map: u32,
+    pub world_from_camera: Pose,
 }
 
 /// Where a marker's distance came from.

@@ -2,7 +2,7 @@
 
 use serde::de::DeserializeOwned;
 use thiserror::Error;
-use vsgraphs_proto::api::{ApiError, FrameDetections, Health, RobotStatus};
+use vsgraphs_proto::api::{ApiError, FrameDetections, Health, RobotStatus, TrajectoryPose};
 
 #[derive(Debug, Error)]
 pub enum ClientError {
@@ -53,6 +53,12 @@ impl Client {
     /// The markers of the robot's latest processed frame.
     pub async fn detections(&self, robot_id: &str) -> Result<FrameDetections, ClientError> {
         self.get(&format!("/api/v1/robots/{robot_id}/detections"))
+            .await
+    }
+
+    /// Every pose tracking gave the robot, oldest first, in every map of its Atlas.
+    pub async fn trajectory(&self, robot_id: &str) -> Result<Vec<TrajectoryPose>, ClientError> {
+        self.get(&format!("/api/v1/robots/{robot_id}/trajectory"))
             .await
     }
 

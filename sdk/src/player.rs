@@ -96,8 +96,9 @@ struct Loaded {
     files: FrameFiles,
 }
 
-/// Reads and encodes one frame's files.
-fn load(
+/// Reads and encodes one frame's files as the player sends them: colour bytes unchanged, depth
+/// in `codec`. Returns the images and the raw depth size in bytes.
+pub fn load_frame(
     files: &FrameFiles,
     codec: DepthEncoding,
 ) -> Result<(ColourImage, DepthImage, u64), String> {
@@ -178,7 +179,7 @@ pub async fn play(
                     if limit.is_some_and(|l| sent >= l) {
                         return;
                     }
-                    let result = load(files, codec);
+                    let result = load_frame(files, codec);
                     let timestamp_ns = loop_offset + files.timestamp_ns - frames[0].timestamp_ns;
                     let loaded = Loaded {
                         timestamp_ns,

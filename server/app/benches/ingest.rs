@@ -47,7 +47,8 @@ fn ingest(c: &mut Criterion) {
         imu: vec![],
     }
     .encode_to_vec();
-    let mut processor = FrameProcessor::new(&MarkerConfig::default(), 32 << 20).unwrap();
+    let mut processor =
+        FrameProcessor::new(&MarkerConfig::default(), &Default::default(), 32 << 20).unwrap();
     assert_eq!(
         processor
             .process("bench", &bytes, None)

@@ -3,7 +3,7 @@
 //! Handlers only read the registry's current state; they never wait on processing.
 
 use crate::robots::Registry;
-use axum::extract::{Path, State};
+use axum::extract::{Path, Query, State};
 use axum::http::StatusCode;
 use axum::response::{IntoResponse, Response};
 use axum::routing::get;
@@ -12,7 +12,7 @@ use std::sync::Arc;
 use utoipa::OpenApi;
 use vsgraphs_proto::api::{
     ApiError, DistanceSource, FrameCounters, FrameDetections, Health, MarkerDetection, MarkerPose,
-    Presence, Rejection, RobotStatus, Timing,
+    Pose, Presence, Rejection, RobotStatus, Timing, TrackingState, TrackingStatus, TrajectoryPose,
 };
 
 /// An error answer: a status code and a JSON [`ApiError`] body.
@@ -49,7 +49,7 @@ impl IntoResponse for Failure {
         title = "vsgraphs",
         description = "Robots, their frames and their marker detections."
     ),
-    paths(health, list_robots, get_robot, get_detections),
+    paths(health, list_robots, get_robot, get_detections, get_trajectory),
     components(schemas(
         Health,
         RobotStatus,
@@ -61,6 +61,10 @@ impl IntoResponse for Failure {
         MarkerDetection,
         MarkerPose,
         DistanceSource,
+        TrackingStatus,
+        TrackingState,
+        Pose,
+        TrajectoryPose,
         ApiError
     ))
 )]
@@ -80,6 +84,7 @@ pub fn router(registry: Arc<Registry>) -> Router {
         .route("/api/v1/robots", get(list_robots))
         .route("/api/v1/robots/{robot_id}", get(get_robot))
         .route("/api/v1/robots/{robot_id}/detections", get(get_detections))
+        .route("/api/v1/robots/{robot_id}/trajectory", get(get_trajectory))
         .route(
             "/api/v1/openapi.json",
             get(|| async { ([("content-type", "application/json")], openapi_json()) }),
@@ -156,6 +161,62 @@ async fn get_detections(
         )
     })?;
     Ok(Json((*latest).clone()))
+}
+
+/// Query of `GET /api/v1/robots/{robot_id}/trajectory`.
+#[derive(Debug, serde::Deserialize, utoipa::IntoParams)]
+struct TrajectoryQuery {
+    /// `json` (default) or `tum` (text: `t x y z qx qy qz qw`, seconds).
+    format: Option<String>,
+    /// Only poses in this map of the robot's Atlas; TUM output defaults to the latest pose's map.
+    map: Option<u32>,
+}
+
+/// Every pose tracking gave the robot, oldest first, as JSON or as a TUM trajectory file.
+#[utoipa::path(
+    get,
+    path = "/api/v1/robots/{robot_id}/trajectory",
+    params(("robot_id" = String, Path, description = "The robot's id"), TrajectoryQuery),
+    responses(
+        (status = 200, body = [TrajectoryPose]),
+        (status = 400, body = ApiError, description = "unknown format"),
+        (status = 404, body = ApiError, description = "unknown robot")
+    )
+)]
+async fn get_trajectory(
+    State(registry): State<Arc<Registry>>,
+    Path(robot_id): Path<String>,
+    Query(query): Query<TrajectoryQuery>,
+) -> Result<Response, Failure> {
+    let robot = registry
+        .get(&robot_id)
+        .ok_or_else(|| unknown_robot(&robot_id))?;
+    let mut poses = robot.trajectory();
+    let tum = match query.format.as_deref() {
+        None | Some("json") => false,
+        Some("tum") => true,
+        Some(other) => {
+            return Err(Failure {
+                status: StatusCode::BAD_REQUEST,
+                code: "unknown_format",
+                message: format!("format {other:?}: expected json or tum"),
+            })
+        }
+    };
+    let map = query
+        .map
+        .or_else(|| tum.then(|| poses.last().map(|p| p.map)).flatten());
+    if let Some(map) = map {
+        poses.retain(|p| p.map == map);
+    }
+    if tum {
+        return Ok((
+            [("content-type", "text/plain; charset=utf-8")],
+            crate::offline::tum_text(&poses),
+        )
+            .into_response());
+    }
+    Ok(Json(poses).into_response())
 }
 
 fn unknown_robot(robot_id: &str) -> Failure {

@@ -15,6 +15,7 @@ pub struct Config {
     pub zenoh: ZenohSettings,
     pub ingest: IngestConfig,
     pub markers: MarkerConfig,
+    pub tracking: TrackingConfig,
 }
 
 impl Default for Config {
@@ -27,6 +28,7 @@ impl Default for Config {
             },
             ingest: IngestConfig::default(),
             markers: MarkerConfig::default(),
+            tracking: TrackingConfig::default(),
         }
     }
 }
@@ -99,6 +101,45 @@ impl Default for MarkerConfig {
     }
 }
 
+/// Camera tracking (RGB-D SLAM) per robot.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct TrackingConfig {
+    pub enabled: bool,
+    pub features: usize,
+    pub virtual_baseline_m: f64,
+    pub keyframe_ratio: f64,
+    pub local_ba_iterations: usize,
+    pub new_map_after_s: f64,
+}
+
+impl Default for TrackingConfig {
+    fn default() -> Self {
+        let slam = vsgraphs_slam::TrackerConfig::default();
+        Self {
+            enabled: true,
+            features: slam.orb.features,
+            virtual_baseline_m: slam.virtual_baseline_m,
+            keyframe_ratio: slam.keyframe_ratio,
+            local_ba_iterations: slam.local_ba_iterations,
+            new_map_after_s: slam.new_map_after_s,
+        }
+    }
+}
+
+impl TrackingConfig {
+    /// The tracker's settings: these fields over its defaults.
+    pub fn tracker(&self) -> vsgraphs_slam::TrackerConfig {
+        let mut config = vsgraphs_slam::TrackerConfig::default();
+        config.orb.features = self.features;
+        config.virtual_baseline_m = self.virtual_baseline_m;
+        config.keyframe_ratio = self.keyframe_ratio;
+        config.local_ba_iterations = self.local_ba_iterations;
+        config.new_map_after_s = self.new_map_after_s;
+        config
+    }
+}
+
 #[derive(Debug, Error)]
 pub enum ConfigError {
     #[error("cannot read {path}: {source}")]
@@ -157,6 +198,31 @@ impl Config {
                 "must be a positive fraction".into(),
             );
         }
+        let t = &self.tracking;
+        if !(50..=10_000).contains(&t.features) {
+            return invalid(
+                "tracking.features",
+                format!("{} is not within 50..=10000", t.features),
+            );
+        }
+        if !(t.virtual_baseline_m.is_finite() && t.virtual_baseline_m > 0.0) {
+            return invalid(
+                "tracking.virtual_baseline_m",
+                "must be a positive length in metres".into(),
+            );
+        }
+        if !(t.keyframe_ratio > 0.0 && t.keyframe_ratio < 1.0) {
+            return invalid(
+                "tracking.keyframe_ratio",
+                "must be a fraction between 0 and 1".into(),
+            );
+        }
+        if !(t.new_map_after_s.is_finite() && t.new_map_after_s >= 0.0) {
+            return invalid(
+                "tracking.new_map_after_s",
+                "must be zero or more seconds".into(),
+            );
+        }
         if let Err(e) = self.zenoh.to_config() {
             return invalid("zenoh", e.to_string());
         }
@@ -191,6 +257,11 @@ mod tests {
             .unwrap_err()
             .to_string()
             .contains("sometimes"));
+        std::fs::write(&path, "[tracking]\nkeyframe_ratio = 1.5\n").unwrap();
+        assert!(Config::load(&path)
+            .unwrap_err()
+            .to_string()
+            .contains("tracking.keyframe_ratio"));
         std::fs::write(&path, "[http]\nlisten = \"127.0.0.1:9000\"\n").unwrap();
         assert_eq!(Config::load(&path).unwrap().http.listen.port(), 9000);
         assert!(matches!(

@@ -9,6 +9,7 @@ pub mod api;
 pub mod config;
 pub mod detect;
 pub mod ingest;
+pub mod offline;
 pub mod pipeline;
 pub mod robots;
 pub mod simulate;
@@ -38,8 +39,12 @@ impl Server {
     pub async fn start(config: Config) -> anyhow::Result<Self> {
         config.validate()?;
         // Fail now, not in the first robot's worker, if the marker dictionary cannot load.
-        pipeline::FrameProcessor::new(&config.markers, config.ingest.max_frame_bytes)
-            .context("setting up marker detection")?;
+        pipeline::FrameProcessor::new(
+            &config.markers,
+            &config.tracking,
+            config.ingest.max_frame_bytes,
+        )
+        .context("setting up marker detection")?;
         let registry = Arc::new(Registry::new(
             config.ingest.max_robots,
             config.ingest.queue_capacity,

@@ -65,6 +65,17 @@ enum Command {
         #[arg(long, default_value = "subpixel", value_parser = parse_refinement)]
         refinement: CornerRefinement,
     },
+    /// Run a recorded or simulated sequence (TUM RGB-D or 7-Scenes layout) through the frame
+    /// pipeline without the network, and write the tracked trajectory.
+    Offline {
+        dataset: PathBuf,
+        /// TUM trajectory file to write (poses of the map the run ends in).
+        #[arg(long)]
+        trajectory: Option<PathBuf>,
+        /// Stop after this many frames.
+        #[arg(long)]
+        limit: Option<usize>,
+    },
     /// Print the effective configuration as TOML.
     PrintConfig,
     /// Act as a robot that streams rendered markers (for demos and deployment checks).
@@ -121,6 +132,36 @@ fn effective_config(cli: &Cli) -> anyhow::Result<Config> {
     Ok(config)
 }
 
+fn print_offline(s: &vsgraphs_server::offline::OfflineSummary) {
+    use vsgraphs_server::offline::median;
+    println!(
+        "{} frames in {:.1} s: {} tracked, {} not tracked, {} skipped",
+        s.frames,
+        s.elapsed.as_secs_f64(),
+        s.tracked,
+        s.untracked,
+        s.skipped.len()
+    );
+    for (sequence, reason) in s.skipped.iter().take(10) {
+        println!("  skipped frame {sequence}: {reason}");
+    }
+    for (t, event) in &s.events {
+        println!("  t={t:.3} s: {event}");
+    }
+    println!(
+        "maps {}, keyframes {}, map points {}",
+        s.maps, s.keyframes, s.map_points
+    );
+    println!(
+        "median ms per frame: pipeline {:.2} (features {:.2}, tracking {:.2}, mapping {:.2}); mapping mean {:.2}",
+        median(&s.pipeline_ms),
+        median(&s.features_ms),
+        median(&s.tracking_ms),
+        median(&s.mapping_ms),
+        s.mapping_ms.iter().sum::<f64>() / s.mapping_ms.len().max(1) as f64
+    );
+}
+
 #[tokio::main]
 async fn main() -> anyhow::Result<()> {
     tracing_subscriber::fmt()
@@ -160,6 +201,37 @@ async fn main() -> anyhow::Result<()> {
             })
             .await??;
             println!("{}", serde_json::to_string_pretty(&report)?);
+        }
+        Command::Offline {
+            dataset,
+            trajectory,
+            limit,
+        } => {
+            let dataset = vsgraphs_sdk::dataset::open(&dataset)?;
+            for warning in &dataset.warnings {
+                eprintln!("note: {warning}");
+            }
+            let (summary, poses) = tokio::task::spawn_blocking(move || {
+                vsgraphs_server::offline::run(&config, &dataset, limit, |done, total| {
+                    if done % 100 == 0 || done == total {
+                        eprintln!("{done}/{total} frames");
+                    }
+                })
+            })
+            .await??;
+            print_offline(&summary);
+            if let Some(path) = trajectory {
+                let map = poses.last().map(|p| p.map);
+                let kept: Vec<_> = poses.into_iter().filter(|p| Some(p.map) == map).collect();
+                vsgraphs_server::offline::write_tum(&path, &kept)
+                    .with_context(|| format!("writing {}", path.display()))?;
+                println!(
+                    "trajectory: {} poses of map {} in {}",
+                    kept.len(),
+                    map.unwrap_or(0),
+                    path.display()
+                );
+            }
         }
         Command::PrintConfig => print!("{}", toml::to_string_pretty(&config)?),
         Command::SimulateMarkers {

@@ -2,10 +2,12 @@
 //! decoding, ArUco detection and marker poses. Runs on a robot's worker thread, never on the
 //! async runtime; every failure is a [`Rejection`] with a reason code and a readable message.
 
-use crate::config::MarkerConfig;
+use crate::config::{MarkerConfig, TrackingConfig};
 use std::time::{Duration, Instant};
+use vsgraphs_proto::api::TrackingState;
 use vsgraphs_proto::api::{DistanceSource, MarkerDetection, MarkerPose};
 use vsgraphs_proto::{keys, Message, RgbdFrame};
+use vsgraphs_slam::{FrameResult, Tracker};
 use vsgraphs_vision::aruco::MarkerDetector;
 use vsgraphs_vision::camera::PinholeCamera;
 use vsgraphs_vision::decode::{self, DecodeError};
@@ -78,7 +80,23 @@ pub struct Processed {
     pub image_width: u32,
     pub image_height: u32,
     pub markers: Vec<MarkerDetection>,
+    /// Absent when tracking is off.
+    pub tracking: Option<FrameTracking>,
     pub processing: Duration,
+}
+
+/// What tracking made of a frame.
+#[derive(Debug, Clone)]
+pub struct FrameTracking {
+    pub state: TrackingState,
+    /// The tracker's account (absent when the frame could not be tracked at all).
+    pub result: Option<FrameResult>,
+    /// The Atlas after the frame: maps, and the active map's size.
+    pub maps: usize,
+    pub keyframes: usize,
+    pub map_points: usize,
+    /// Why the frame could not be tracked, when it is an error rather than a lost track.
+    pub error: Option<String>,
 }
 
 /// The header of a readable frame, for sequence and timestamp bookkeeping.
@@ -96,18 +114,35 @@ pub struct FrameProcessor {
     max_frame_bytes: usize,
     /// Pose estimation is set up per camera model; robots rarely change theirs.
     estimator: Option<PoseEstimator>,
+    /// The robot's camera tracking, when enabled.
+    tracker: Option<Tracker>,
 }
 
 impl FrameProcessor {
-    pub fn new(settings: &MarkerConfig, max_frame_bytes: usize) -> Result<Self, DictionaryError> {
+    pub fn new(
+        settings: &MarkerConfig,
+        tracking: &TrackingConfig,
+        max_frame_bytes: usize,
+    ) -> Result<Self, SetupError> {
         let dictionary = load_dictionary(settings)?;
         let detector = MarkerDetector::new(dictionary, settings.corner_refinement)?;
+        let tracker = if tracking.enabled {
+            Some(Tracker::new(tracking.tracker())?)
+        } else {
+            None
+        };
         Ok(Self {
             detector,
             settings: settings.clone(),
             max_frame_bytes,
             estimator: None,
+            tracker,
         })
+    }
+
+    /// The robot's tracker, when tracking is on.
+    pub fn tracker(&self) -> Option<&Tracker> {
+        self.tracker.as_ref()
     }
 
     /// Decodes the protobuf and checks everything but the image contents.
@@ -223,7 +258,7 @@ impl FrameProcessor {
             .is_none_or(|e| e.camera() != &camera)
         {
             self.estimator = Some(
-                PoseEstimator::new(camera, self.settings.side_m)
+                PoseEstimator::new(camera.clone(), self.settings.side_m)
                     .map_err(|e| reject(Reason::BadCamera, e.to_string(), sequence))?,
             );
         }
@@ -248,6 +283,12 @@ impl FrameProcessor {
                 }
             })
             .collect();
+        let tracking = self.tracker.as_mut().map(|tracker| {
+            if previous.is_some_and(|p| p.session_id != frame.session_id) {
+                tracker.restart();
+            }
+            track(tracker, &camera, frame.timestamp_ns, &grey, &depth)
+        });
         Ok(Processed {
             session_id: frame.session_id,
             sequence: frame.sequence,
@@ -255,8 +296,67 @@ impl FrameProcessor {
             image_width: wire_camera.width,
             image_height: wire_camera.height,
             markers,
+            tracking,
             processing: started.elapsed(),
         })
+    }
+}
+
+/// Why frame processing could not be set up.
+#[derive(Debug, thiserror::Error)]
+pub enum SetupError {
+    #[error(transparent)]
+    Dictionary(#[from] DictionaryError),
+    #[error("tracking: {0}")]
+    Tracking(#[from] vsgraphs_slam::TrackError),
+}
+
+impl From<vsgraphs_vision::CvError> for SetupError {
+    fn from(e: vsgraphs_vision::CvError) -> Self {
+        SetupError::Dictionary(DictionaryError::from(e))
+    }
+}
+
+/// Tracks one decoded frame. Lens distortion is refused: keypoints are not undistorted yet, and
+/// tracking a distorted image as if it were rectified would give wrong poses, not no pose.
+fn track(
+    tracker: &mut Tracker,
+    camera: &PinholeCamera,
+    timestamp_ns: u64,
+    grey: &vsgraphs_vision::opencv::core::Mat,
+    depth: &vsgraphs_vision::depth::DepthImage,
+) -> FrameTracking {
+    let summary = |tracker: &Tracker, state, result, error| {
+        let map = tracker.atlas().active();
+        FrameTracking {
+            state,
+            result,
+            maps: tracker.atlas().maps.len(),
+            keyframes: map.map_or(0, |m| m.keyframes.len()),
+            map_points: map.map_or(0, |m| m.live_points()),
+            error,
+        }
+    };
+    if !camera.is_undistorted() {
+        return summary(tracker, TrackingState::UnsupportedCamera, None, None);
+    }
+    let pinhole = vsgraphs_slam::Pinhole::new(camera.fx, camera.fy, camera.cx, camera.cy);
+    match tracker.track(timestamp_ns, &pinhole, grey, depth) {
+        Ok(result) => {
+            let state = match result.state {
+                vsgraphs_slam::TrackingState::Initialising => TrackingState::Initialising,
+                vsgraphs_slam::TrackingState::Tracking => TrackingState::Tracking,
+                vsgraphs_slam::TrackingState::Lost => TrackingState::Lost,
+            };
+            summary(tracker, state, Some(result), None)
+        }
+        Err(e) => {
+            let state = match tracker.state() {
+                vsgraphs_slam::TrackingState::Initialising => TrackingState::Initialising,
+                _ => TrackingState::Lost,
+            };
+            summary(tracker, state, None, Some(e.to_string()))
+        }
     }
 }
 

@@ -4,11 +4,15 @@
 //! read by the API. Locks are held for a few field updates only, never across I/O or `.await`.
 
 use crate::ingest::queue::FrameQueue;
+use crate::pipeline::FrameTracking;
 use std::collections::{BTreeMap, HashMap, VecDeque};
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex, RwLock};
 use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
-use vsgraphs_proto::api::{self, FrameCounters, FrameDetections, Presence, RobotStatus, Timing};
+use vsgraphs_proto::api::{
+    self, FrameCounters, FrameDetections, Pose, Presence, RobotStatus, Timing, TrackingStatus,
+    TrajectoryPose,
+};
 
 /// Window over which rate and latency are reported.
 const TIMING_WINDOW: Duration = Duration::from_secs(5);
@@ -43,6 +47,21 @@ struct RobotState {
     markers_detected: BTreeMap<i32, u64>,
     /// (when processed, capture-to-processed latency ms, processing ms) of recent frames.
     recent: VecDeque<(Instant, f64, f64)>,
+    /// Tracking as of the latest frame (its timing fields are filled in by `status`).
+    tracking: Option<TrackingStatus>,
+    /// (when, features ms, tracking ms, mapping ms) of recently tracked frames.
+    tracking_recent: VecDeque<(Instant, f64, f64, f64)>,
+    /// Every tracked pose (72 bytes each: an hour at 30 Hz is under 8 MB).
+    trajectory: Vec<TrajectoryPose>,
+}
+
+/// An `Se3` as the API writes it.
+pub fn api_pose(pose: &vsgraphs_slam::Se3) -> Pose {
+    let q = pose.rotation.coords;
+    Pose {
+        translation_m: [pose.translation.x, pose.translation.y, pose.translation.z],
+        rotation_xyzw: [q.x, q.y, q.z, q.w],
+    }
 }
 
 impl RobotEntry {
@@ -118,6 +137,80 @@ impl RobotEntry {
         *self.latest.lock().unwrap_or_else(|p| p.into_inner()) = Some(Arc::new(detections));
     }
 
+    /// What tracking made of a processed frame.
+    pub fn record_tracking(&self, timestamp_ns: u64, tracking: &FrameTracking) {
+        let mut state = self.state();
+        let previous = state.tracking.take();
+        let mut status = previous.unwrap_or(TrackingStatus {
+            state: tracking.state,
+            world_from_camera: None,
+            pose_timestamp_ns: None,
+            map: 0,
+            maps: 0,
+            keyframes: 0,
+            map_points: 0,
+            inliers: 0,
+            frames_tracked: 0,
+            frames_untracked: 0,
+            last_event: None,
+            features_ms_mean: None,
+            tracking_ms_mean: None,
+            mapping_ms_mean: None,
+        });
+        status.state = tracking.state;
+        status.maps = tracking.maps as u32;
+        status.keyframes = tracking.keyframes as u64;
+        status.map_points = tracking.map_points as u64;
+        if let Some(error) = &tracking.error {
+            status.last_event = Some(format!("error: {error}"));
+        }
+        match tracking.result.as_ref() {
+            Some(result) => {
+                status.map = result.map as u32;
+                status.inliers = result.inliers as u64;
+                if let Some(event) = &result.event {
+                    status.last_event = Some(event.clone());
+                }
+                let now = Instant::now();
+                let ms = |d: Duration| d.as_secs_f64() * 1e3;
+                state.tracking_recent.push_back((
+                    now,
+                    ms(result.times.features),
+                    ms(result.times.tracking),
+                    ms(result.times.mapping),
+                ));
+                while state
+                    .tracking_recent
+                    .front()
+                    .is_some_and(|(t, ..)| now.duration_since(*t) > TIMING_WINDOW)
+                {
+                    state.tracking_recent.pop_front();
+                }
+                match result.world_from_camera {
+                    Some(pose) => {
+                        status.frames_tracked += 1;
+                        let pose = api_pose(&pose);
+                        status.world_from_camera = Some(pose);
+                        status.pose_timestamp_ns = Some(timestamp_ns);
+                        state.trajectory.push(TrajectoryPose {
+                            timestamp_ns,
+                            map: result.map as u32,
+                            world_from_camera: pose,
+                        });
+                    }
+                    None => status.frames_untracked += 1,
+                }
+            }
+            None => status.frames_untracked += 1,
+        }
+        state.tracking = Some(status);
+    }
+
+    /// Every pose tracking gave this robot, oldest first.
+    pub fn trajectory(&self) -> Vec<TrajectoryPose> {
+        self.state().trajectory.clone()
+    }
+
     pub fn set_presence(&self, presence: Presence) {
         let mut state = self.state();
         state.presence = Some(presence);
@@ -174,6 +267,21 @@ impl RobotEntry {
             },
             last_rejection: state.last_rejection.clone(),
             markers_detected: state.markers_detected.clone(),
+            tracking: state.tracking.clone().map(|mut t| {
+                let recent: Vec<_> = state
+                    .tracking_recent
+                    .iter()
+                    .filter(|(at, ..)| now.duration_since(*at) <= TIMING_WINDOW)
+                    .collect();
+                let mean = |f: fn(&(Instant, f64, f64, f64)) -> f64| {
+                    (!recent.is_empty())
+                        .then(|| recent.iter().map(|r| f(r)).sum::<f64>() / recent.len() as f64)
+                };
+                t.features_ms_mean = mean(|r| r.1);
+                t.tracking_ms_mean = mean(|r| r.2);
+                t.mapping_ms_mean = mean(|r| r.3);
+                t
+            }),
         }
     }
 }

@@ -13,6 +13,7 @@ pub mod lie;
 mod normal;
 mod parallel;
 pub mod plane;
+pub mod pose_only;
 pub mod problem;
 pub mod solver;
 pub mod testing;

@@ -172,8 +172,8 @@ impl OrbExtractor {
             for corner in kept {
                 let angle = self.orientation(level_image, corner.x, corner.y)?;
                 keypoints.push(KeyPoint::new_coords(
-                    corner.x as f32 * scale as f32,
-                    corner.y as f32 * scale as f32,
+                    level_to_base(corner.x, scale),
+                    level_to_base(corner.y, scale),
                     size,
                     angle,
                     corner.response,
@@ -291,6 +291,13 @@ impl OrbExtractor {
         let angle = (m01 as f64).atan2(m10 as f64).to_degrees();
         Ok((if angle < 0.0 { angle + 360.0 } else { angle }) as f32)
     }
+}
+
+/// A level's pixel coordinate in level-0 pixels. Pixel centres sit at integers and a resize
+/// maps centres onto centres, so `x ↦ (x + ½)·s − ½`; the plain `x·s` (ORB-SLAM's) shifts
+/// coarse-level keypoints by up to 1.3 px toward the top-left corner, a bias between levels.
+fn level_to_base(x: i32, scale: f64) -> f32 {
+    ((f64::from(x) + 0.5) * scale - 0.5) as f32
 }
 
 /// A FAST corner in its level's pixels.

@@ -173,7 +173,11 @@ impl Continuity {
 fn run_worker(robot: Arc<RobotEntry>, config: &Config) {
     let span = tracing::info_span!("robot", robot_id = robot.robot_id);
     let _entered = span.enter();
-    let mut processor = match FrameProcessor::new(&config.markers, config.ingest.max_frame_bytes) {
+    let mut processor = match FrameProcessor::new(
+        &config.markers,
+        &config.tracking,
+        config.ingest.max_frame_bytes,
+    ) {
         Ok(processor) => processor,
         Err(e) => {
             // The configuration was checked at start-up, so this is not expected; say so loudly.
@@ -216,6 +220,12 @@ fn run_worker(robot: Arc<RobotEntry>, config: &Config) {
                 });
                 continuity.dropped_since = 0;
                 continuity.unsequenced_since = 0;
+                if let Some(tracking) = &processed.tracking {
+                    if let Some(event) = tracking.result.as_ref().and_then(|r| r.event.as_ref()) {
+                        tracing::info!(event, "tracking");
+                    }
+                    robot.record_tracking(processed.timestamp_ns, tracking);
+                }
                 robot.record_processed(
                     FrameDetections {
                         robot_id: robot.robot_id.clone(),

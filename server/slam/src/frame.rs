@@ -1,0 +1,269 @@
+//! A frame as tracking sees it: ORB keypoints with depth and their descriptors, bucketed in a
+//! grid so that the keypoints near a predicted pixel are found without scanning them all.
+
+use nalgebra::Vector3;
+use vsgraphs_sgraph::Pinhole;
+use vsgraphs_vision::opencv::prelude::*;
+use vsgraphs_vision::orb::Extraction;
+
+/// A 256-bit rotated-BRIEF descriptor.
+pub type Descriptor = [u8; 32];
+
+/// Number of differing bits.
+pub fn hamming(a: &Descriptor, b: &Descriptor) -> u32 {
+    let mut distance = 0;
+    for (x, y) in a.chunks_exact(8).zip(b.chunks_exact(8)) {
+        let x = u64::from_le_bytes(x.try_into().expect("8 bytes"));
+        let y = u64::from_le_bytes(y.try_into().expect("8 bytes"));
+        distance += (x ^ y).count_ones();
+    }
+    distance
+}
+
+/// The camera as tracking uses it: rectified intrinsics, the virtual stereo baseline that turns
+/// depth into a right-image coordinate, and the feature pyramid's scales.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Rig {
+    pub camera: Pinhole,
+    pub width: u32,
+    pub height: u32,
+    /// Focal length times the virtual baseline, pixel·metres (ORB-SLAM's `bf`).
+    pub bf: f64,
+    /// Points nearer than this are "close": their depth is trusted to create map points at once
+    /// (ORB-SLAM's `40 × baseline`).
+    pub close_depth: f64,
+    pub scale_factor: f64,
+    pub levels: usize,
+}
+
+impl Rig {
+    /// Scale of pyramid level `level` relative to level 0.
+    pub fn scale(&self, level: usize) -> f64 {
+        self.scale_factor.powi(level as i32)
+    }
+
+    /// `1/σ²` of a keypoint's pixel coordinates found on `level` (σ = the level's scale).
+    pub fn information(&self, level: usize) -> f64 {
+        1.0 / (self.scale(level) * self.scale(level))
+    }
+
+    /// Whether a pixel lies inside the image.
+    pub fn in_image(&self, u: f64, v: f64) -> bool {
+        u >= 0.0 && v >= 0.0 && u < f64::from(self.width) && v < f64::from(self.height)
+    }
+
+    /// The pyramid level a point seen at `distance` is expected on, given the distances over
+    /// which its descriptor stays valid ([`crate::MapPoint::max_distance`]).
+    pub fn predict_level(&self, max_distance: f64, distance: f64) -> usize {
+        let ratio = max_distance / distance.max(1e-9);
+        let level = (ratio.ln() / self.scale_factor.ln()).ceil();
+        level.clamp(0.0, (self.levels - 1) as f64) as usize
+    }
+}
+
+/// One ORB keypoint, level-0 pixels.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Keypoint {
+    pub x: f64,
+    pub y: f64,
+    pub level: u8,
+    /// Degrees in [0, 360).
+    pub angle: f32,
+    /// Metres, when the depth image has it.
+    pub depth: Option<f64>,
+    /// `x − bf/depth`.
+    pub right_x: Option<f64>,
+}
+
+/// Grid cells over the image, ORB-SLAM's 64 × 48.
+const GRID_COLS: usize = 64;
+const GRID_ROWS: usize = 48;
+
+/// Keypoints and descriptors of one image, with a grid for area queries.
+#[derive(Clone, Debug)]
+pub struct Frame {
+    pub timestamp_ns: u64,
+    pub keypoints: Vec<Keypoint>,
+    pub descriptors: Vec<Descriptor>,
+    cell_width: f64,
+    cell_height: f64,
+    cells: Vec<Vec<u32>>,
+}
+
+impl Frame {
+    /// Builds a frame from an extraction (`descriptors` must be N × 32 bytes).
+    pub fn new(timestamp_ns: u64, extraction: &Extraction, rig: &Rig) -> Self {
+        let bytes = extraction.descriptors.data_bytes().unwrap_or(&[]);
+        let n = extraction.features.len().min(bytes.len() / 32);
+        let descriptors = bytes
+            .chunks_exact(32)
+            .take(n)
+            .map(|c| c.try_into().expect("32 bytes"))
+            .collect();
+        let keypoints = extraction.features[..n]
+            .iter()
+            .map(|f| Keypoint {
+                x: f64::from(f.x),
+                y: f64::from(f.y),
+                level: f.octave.clamp(0, 255) as u8,
+                angle: f.angle,
+                depth: f.depth.map(f64::from),
+                right_x: f.depth.map(|z| f64::from(f.x) - rig.bf / f64::from(z)),
+            })
+            .collect();
+        Self::from_parts(timestamp_ns, keypoints, descriptors, rig)
+    }
+
+    pub fn from_parts(
+        timestamp_ns: u64,
+        keypoints: Vec<Keypoint>,
+        descriptors: Vec<Descriptor>,
+        rig: &Rig,
+    ) -> Self {
+        let cell_width = f64::from(rig.width) / GRID_COLS as f64;
+        let cell_height = f64::from(rig.height) / GRID_ROWS as f64;
+        let mut cells = vec![Vec::new(); GRID_COLS * GRID_ROWS];
+        for (i, k) in keypoints.iter().enumerate() {
+            let c = ((k.x / cell_width) as usize).min(GRID_COLS - 1);
+            let r = ((k.y / cell_height) as usize).min(GRID_ROWS - 1);
+            cells[r * GRID_COLS + c].push(i as u32);
+        }
+        Self {
+            timestamp_ns,
+            keypoints,
+            descriptors,
+            cell_width,
+            cell_height,
+            cells,
+        }
+    }
+
+    pub fn len(&self) -> usize {
+        self.keypoints.len()
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.keypoints.is_empty()
+    }
+
+    /// Keypoints within `radius` pixels (a square window) of `(x, y)` on levels
+    /// `min_level..=max_level`.
+    pub fn in_area(
+        &self,
+        x: f64,
+        y: f64,
+        radius: f64,
+        min_level: usize,
+        max_level: usize,
+        out: &mut Vec<usize>,
+    ) {
+        out.clear();
+        let c0 = ((x - radius) / self.cell_width).floor().max(0.0) as usize;
+        let r0 = ((y - radius) / self.cell_height).floor().max(0.0) as usize;
+        let c1 = (((x + radius) / self.cell_width).floor().max(0.0) as usize).min(GRID_COLS - 1);
+        let r1 = (((y + radius) / self.cell_height).floor().max(0.0) as usize).min(GRID_ROWS - 1);
+        if c0 > c1 || r0 > r1 {
+            return;
+        }
+        for r in r0..=r1 {
+            for c in c0..=c1 {
+                for &i in &self.cells[r * GRID_COLS + c] {
+                    let k = &self.keypoints[i as usize];
+                    let level = usize::from(k.level);
+                    if level < min_level || level > max_level {
+                        continue;
+                    }
+                    if (k.x - x).abs() <= radius && (k.y - y).abs() <= radius {
+                        out.push(i as usize);
+                    }
+                }
+            }
+        }
+    }
+
+    /// Keypoint `i` in the camera frame, from its depth.
+    pub fn back_project(&self, i: usize, camera: &Pinhole) -> Option<Vector3<f64>> {
+        let k = &self.keypoints[i];
+        let z = k.depth?;
+        Some(Vector3::new(
+            (k.x - camera.cx) * z / camera.fx,
+            (k.y - camera.cy) * z / camera.fy,
+            z,
+        ))
+    }
+
+    /// Keypoints with a depth reading.
+    pub fn with_depth(&self) -> usize {
+        self.keypoints.iter().filter(|k| k.depth.is_some()).count()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn rig() -> Rig {
+        Rig {
+            camera: Pinhole::new(600.0, 600.0, 320.0, 240.0),
+            width: 640,
+            height: 480,
+            bf: 48.0,
+            close_depth: 3.2,
+            scale_factor: 1.2,
+            levels: 8,
+        }
+    }
+
+    #[test]
+    fn hamming_counts_differing_bits() {
+        let a = [0u8; 32];
+        let mut b = [0u8; 32];
+        assert_eq!(hamming(&a, &b), 0);
+        b[0] = 0b1011;
+        b[31] = 0xff;
+        assert_eq!(hamming(&a, &b), 11);
+        assert_eq!(hamming(&[0xff; 32], &a), 256);
+    }
+
+    #[test]
+    fn area_queries_find_exactly_the_keypoints_in_the_window() {
+        let rig = rig();
+        let mut keypoints = Vec::new();
+        for i in 0..400 {
+            keypoints.push(Keypoint {
+                x: f64::from(i * 37 % 640),
+                y: f64::from(i * 53 % 480),
+                level: (i % 8) as u8,
+                angle: 0.0,
+                depth: None,
+                right_x: None,
+            });
+        }
+        let frame = Frame::from_parts(0, keypoints.clone(), vec![[0; 32]; 400], &rig);
+        let mut found = Vec::new();
+        for (x, y, r) in [(100.0, 100.0, 30.0), (0.0, 0.0, 50.0), (639.0, 479.0, 80.0)] {
+            frame.in_area(x, y, r, 1, 5, &mut found);
+            found.sort();
+            let expected: Vec<usize> = keypoints
+                .iter()
+                .enumerate()
+                .filter(|(_, k)| {
+                    (k.x - x).abs() <= r && (k.y - y).abs() <= r && (1..=5).contains(&k.level)
+                })
+                .map(|(i, _)| i)
+                .collect();
+            assert_eq!(found, expected);
+            assert!(!expected.is_empty());
+        }
+    }
+
+    #[test]
+    fn predicted_levels_follow_distance() {
+        let rig = rig();
+        // A point first seen on level 0 at 2 m: max distance 2 m; seen from 1 m it should be on
+        // a coarser level (ln 2 / ln 1.2 = 3.8 → 4).
+        assert_eq!(rig.predict_level(2.0, 2.0), 0);
+        assert_eq!(rig.predict_level(2.0, 1.0), 4);
+        assert_eq!(rig.predict_level(2.0, 0.01), 7);
+    }
+}

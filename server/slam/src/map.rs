@@ -1,0 +1,383 @@
+//! The map of one tracking session: keyframes and map points in arenas indexed by typed ids,
+//! with the observations that tie them. Culled points stay in the arena marked bad, so ids
+//! never dangle. The [`Atlas`] holds every map a robot has started.
+
+use crate::frame::{hamming, Descriptor, Frame, Rig};
+use nalgebra::Vector3;
+use std::collections::HashMap;
+use vsgraphs_sgraph::Se3;
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, PartialOrd, Ord)]
+pub struct KeyFrameId(pub u32);
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, PartialOrd, Ord)]
+pub struct MapPointId(pub u32);
+
+/// A frame kept in the map, with the map point (if any) behind each keypoint.
+#[derive(Clone, Debug)]
+pub struct KeyFrame {
+    pub id: KeyFrameId,
+    pub frame: Frame,
+    pub world_from_camera: Se3,
+    pub points: Vec<Option<MapPointId>>,
+}
+
+impl KeyFrame {
+    pub fn camera_centre(&self) -> Vector3<f64> {
+        self.world_from_camera.translation
+    }
+}
+
+/// A 3-D point seen by keyframes.
+#[derive(Clone, Debug)]
+pub struct MapPoint {
+    pub position: Vector3<f64>,
+    /// The observation's descriptor closest to all others (ORB-SLAM's distinctive descriptor).
+    pub descriptor: Descriptor,
+    /// (keyframe, keypoint index).
+    pub observations: Vec<(KeyFrameId, usize)>,
+    /// Mean viewing direction (unit), from the point toward the cameras that see it.
+    pub normal: Vector3<f64>,
+    /// Distances over which its descriptor's scale stays within the pyramid.
+    pub min_distance: f64,
+    pub max_distance: f64,
+    /// Frames that should have seen it, and frames that matched it.
+    pub visible: u32,
+    pub found: u32,
+    pub first_keyframe: KeyFrameId,
+    pub bad: bool,
+}
+
+impl MapPoint {
+    /// Matched over predicted: points that are rarely found when in view are unreliable.
+    pub fn found_ratio(&self) -> f64 {
+        f64::from(self.found) / f64::from(self.visible.max(1))
+    }
+}
+
+/// Keyframes and map points of one map.
+#[derive(Clone, Debug, Default)]
+pub struct Map {
+    pub keyframes: Vec<KeyFrame>,
+    pub points: Vec<MapPoint>,
+    /// Each keyframe's covisible keyframes as of its last refresh (see [`Map::neighbours`]).
+    neighbours: Vec<Vec<(KeyFrameId, usize)>>,
+}
+
+impl Map {
+    pub fn keyframe(&self, id: KeyFrameId) -> &KeyFrame {
+        &self.keyframes[id.0 as usize]
+    }
+
+    pub fn keyframe_mut(&mut self, id: KeyFrameId) -> &mut KeyFrame {
+        &mut self.keyframes[id.0 as usize]
+    }
+
+    pub fn point(&self, id: MapPointId) -> &MapPoint {
+        &self.points[id.0 as usize]
+    }
+
+    pub fn point_mut(&mut self, id: MapPointId) -> &mut MapPoint {
+        &mut self.points[id.0 as usize]
+    }
+
+    /// Points not culled.
+    pub fn live_points(&self) -> usize {
+        self.points.iter().filter(|p| !p.bad).count()
+    }
+
+    pub fn add_keyframe(&mut self, frame: Frame, world_from_camera: Se3) -> KeyFrameId {
+        let id = KeyFrameId(self.keyframes.len() as u32);
+        let n = frame.len();
+        self.keyframes.push(KeyFrame {
+            id,
+            frame,
+            world_from_camera,
+            points: vec![None; n],
+        });
+        id
+    }
+
+    /// A new point first observed by keypoint `index` of `keyframe`.
+    pub fn add_point(
+        &mut self,
+        position: Vector3<f64>,
+        keyframe: KeyFrameId,
+        index: usize,
+        rig: &Rig,
+    ) -> MapPointId {
+        let id = MapPointId(self.points.len() as u32);
+        let descriptor = self.keyframe(keyframe).frame.descriptors[index];
+        self.points.push(MapPoint {
+            position,
+            descriptor,
+            observations: Vec::new(),
+            normal: Vector3::z(),
+            min_distance: 0.0,
+            max_distance: f64::INFINITY,
+            visible: 1,
+            found: 1,
+            first_keyframe: keyframe,
+            bad: false,
+        });
+        self.add_observation(id, keyframe, index);
+        self.update_geometry(id, rig);
+        id
+    }
+
+    /// Records that keypoint `index` of `keyframe` sees `point` (a keypoint sees one point).
+    pub fn add_observation(&mut self, point: MapPointId, keyframe: KeyFrameId, index: usize) {
+        let slot = &mut self.keyframes[keyframe.0 as usize].points[index];
+        if let Some(old) = *slot {
+            if old == point {
+                return;
+            }
+            self.points[old.0 as usize]
+                .observations
+                .retain(|&(k, i)| (k, i) != (keyframe, index));
+        }
+        *slot = Some(point);
+        let p = &mut self.points[point.0 as usize];
+        // One observation per keyframe: a second keypoint of the same keyframe replaces nothing.
+        if p.observations.iter().any(|&(k, _)| k == keyframe) {
+            self.keyframes[keyframe.0 as usize].points[index] = None;
+            return;
+        }
+        p.observations.push((keyframe, index));
+    }
+
+    /// Removes a point from the map (its keyframes forget it).
+    pub fn cull_point(&mut self, point: MapPointId) {
+        let observations = std::mem::take(&mut self.points[point.0 as usize].observations);
+        for (k, i) in observations {
+            let slot = &mut self.keyframes[k.0 as usize].points[i];
+            if *slot == Some(point) {
+                *slot = None;
+            }
+        }
+        self.points[point.0 as usize].bad = true;
+    }
+
+    /// Drops the observation of `point` by `keyframe`; a point left with none is culled.
+    pub fn erase_observation(&mut self, point: MapPointId, keyframe: KeyFrameId) {
+        let p = &mut self.points[point.0 as usize];
+        if let Some(pos) = p.observations.iter().position(|&(k, _)| k == keyframe) {
+            let (_, i) = p.observations.swap_remove(pos);
+            self.keyframes[keyframe.0 as usize].points[i] = None;
+        }
+        if self.points[point.0 as usize].observations.is_empty() {
+            self.cull_point(point);
+        }
+    }
+
+    /// Merges `gone` into `kept`: every keyframe that saw `gone` now sees `kept` (unless it
+    /// already does), and `gone` is culled. Used when two points turn out to be one.
+    pub fn replace_point(&mut self, gone: MapPointId, kept: MapPointId) {
+        if gone == kept || self.point(gone).bad || self.point(kept).bad {
+            return;
+        }
+        let observations = std::mem::take(&mut self.points[gone.0 as usize].observations);
+        let (visible, found) = (self.point(gone).visible, self.point(gone).found);
+        for (k, i) in observations {
+            self.keyframes[k.0 as usize].points[i] = None;
+            if !self.point(kept).observations.iter().any(|&(o, _)| o == k) {
+                self.add_observation(kept, k, i);
+            }
+        }
+        let p = &mut self.points[kept.0 as usize];
+        p.visible += visible;
+        p.found += found;
+        self.points[gone.0 as usize].bad = true;
+    }
+
+    /// Recomputes a point's viewing direction, distance range and distinctive descriptor from
+    /// its observations.
+    pub fn update_geometry(&mut self, point: MapPointId, rig: &Rig) {
+        let p = &self.points[point.0 as usize];
+        if p.observations.is_empty() {
+            return;
+        }
+        let mut normal = Vector3::zeros();
+        for &(k, _) in &p.observations {
+            let to_camera = self.keyframe(k).camera_centre() - p.position;
+            normal += to_camera / to_camera.norm().max(1e-9);
+        }
+        let (k, i) = p.observations[0];
+        let reference = self.keyframe(k);
+        let distance = (p.position - reference.camera_centre()).norm();
+        let level = usize::from(reference.frame.keypoints[i].level);
+        let max_distance = distance * rig.scale(level);
+        let min_distance = max_distance / rig.scale(rig.levels - 1);
+        let descriptors: Vec<Descriptor> = p
+            .observations
+            .iter()
+            .map(|&(k, i)| self.keyframe(k).frame.descriptors[i])
+            .collect();
+        let descriptor = distinctive(&descriptors);
+        let p = &mut self.points[point.0 as usize];
+        p.normal = normal.try_normalize(1e-12).unwrap_or(Vector3::z());
+        p.max_distance = max_distance;
+        p.min_distance = min_distance;
+        p.descriptor = descriptor;
+    }
+
+    /// [`Map::covisible`] as of the last [`Map::refresh_neighbours`] of `keyframe`: tracking asks
+    /// for the neighbours of dozens of keyframes every frame, and counting shared points each
+    /// time was a fifth of its cost.
+    pub fn neighbours(&self, keyframe: KeyFrameId) -> &[(KeyFrameId, usize)] {
+        self.neighbours
+            .get(keyframe.0 as usize)
+            .map_or(&[], |n| n.as_slice())
+    }
+
+    /// Recounts the covisibility of `keyframe` and of every keyframe sharing points with it
+    /// (the only ones whose counts a new or changed keyframe alters).
+    pub fn refresh_neighbours(&mut self, keyframe: KeyFrameId) {
+        if self.neighbours.len() < self.keyframes.len() {
+            self.neighbours.resize(self.keyframes.len(), Vec::new());
+        }
+        let list = self.covisible(keyframe);
+        for &(k, _) in &list {
+            self.neighbours[k.0 as usize] = self.covisible(k);
+        }
+        self.neighbours[keyframe.0 as usize] = list;
+    }
+
+    /// Keyframes sharing points with `keyframe`, most shared first, with the count.
+    pub fn covisible(&self, keyframe: KeyFrameId) -> Vec<(KeyFrameId, usize)> {
+        let mut counts: HashMap<KeyFrameId, usize> = HashMap::new();
+        for point in self.keyframe(keyframe).points.iter().flatten() {
+            for &(k, _) in &self.point(*point).observations {
+                if k != keyframe {
+                    *counts.entry(k).or_default() += 1;
+                }
+            }
+        }
+        let mut list: Vec<_> = counts.into_iter().collect();
+        list.sort_by(|a, b| b.1.cmp(&a.1).then(a.0.cmp(&b.0)));
+        list
+    }
+}
+
+/// The descriptor with the least median distance to the others.
+fn distinctive(descriptors: &[Descriptor]) -> Descriptor {
+    if descriptors.len() <= 2 {
+        return descriptors[0];
+    }
+    let mut best = (u32::MAX, 0);
+    let mut row = Vec::with_capacity(descriptors.len());
+    for (i, a) in descriptors.iter().enumerate() {
+        row.clear();
+        row.extend(descriptors.iter().map(|b| hamming(a, b)));
+        row.sort_unstable();
+        let median = row[(row.len() - 1) / 2];
+        if median < best.0 {
+            best = (median, i);
+        }
+    }
+    descriptors[best.1]
+}
+
+/// Every map a robot has started; the last one is active.
+#[derive(Clone, Debug, Default)]
+pub struct Atlas {
+    pub maps: Vec<Map>,
+}
+
+impl Atlas {
+    pub fn active(&self) -> Option<&Map> {
+        self.maps.last()
+    }
+
+    pub fn active_index(&self) -> Option<usize> {
+        self.maps.len().checked_sub(1)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::frame::Keypoint;
+    use vsgraphs_sgraph::Pinhole;
+
+    fn rig() -> Rig {
+        Rig {
+            camera: Pinhole::new(600.0, 600.0, 320.0, 240.0),
+            width: 640,
+            height: 480,
+            bf: 48.0,
+            close_depth: 3.2,
+            scale_factor: 1.2,
+            levels: 8,
+        }
+    }
+
+    fn frame(n: usize, rig: &Rig) -> Frame {
+        let keypoints = (0..n)
+            .map(|i| Keypoint {
+                x: 10.0 * i as f64,
+                y: 100.0,
+                level: 0,
+                angle: 0.0,
+                depth: Some(2.0),
+                right_x: None,
+            })
+            .collect();
+        let descriptors = (0..n).map(|i| [i as u8; 32]).collect();
+        Frame::from_parts(0, keypoints, descriptors, rig)
+    }
+
+    #[test]
+    fn observations_and_covisibility_stay_consistent() {
+        let rig = rig();
+        let mut map = Map::default();
+        let a = map.add_keyframe(frame(5, &rig), Se3::identity());
+        let b = map.add_keyframe(frame(5, &rig), Se3::identity());
+        let c = map.add_keyframe(frame(5, &rig), Se3::identity());
+        let points: Vec<_> = (0..5)
+            .map(|i| map.add_point(Vector3::new(i as f64, 0.0, 2.0), a, i, &rig))
+            .collect();
+        for &p in &points[..3] {
+            let i = points.iter().position(|&q| q == p).unwrap();
+            map.add_observation(p, b, i);
+        }
+        map.add_observation(points[4], c, 0);
+        assert_eq!(map.covisible(a), vec![(b, 3), (c, 1)]);
+        assert_eq!(map.covisible(c), vec![(a, 1)]);
+        assert!(map.neighbours(a).is_empty());
+        map.refresh_neighbours(c);
+        assert_eq!(map.neighbours(c), &[(a, 1)]);
+        assert_eq!(map.neighbours(a), &[(b, 3), (c, 1)]);
+        // A point seen twice by one keyframe keeps one observation.
+        map.add_observation(points[4], c, 1);
+        assert_eq!(map.point(points[4]).observations.len(), 2);
+        assert_eq!(map.keyframe(c).points[1], None);
+        // Culling a point clears its keyframes' slots.
+        map.cull_point(points[0]);
+        assert!(map.point(points[0]).bad);
+        assert_eq!(map.keyframe(a).points[0], None);
+        assert_eq!(map.keyframe(b).points[0], None);
+        assert_eq!(map.covisible(a), vec![(b, 2), (c, 1)]);
+        assert_eq!(map.live_points(), 4);
+        // Erasing the last observation culls.
+        map.erase_observation(points[4], c);
+        map.erase_observation(points[4], a);
+        assert!(map.point(points[4]).bad);
+    }
+
+    #[test]
+    fn the_distinctive_descriptor_is_the_median_one() {
+        // b is two bits from each of the others, which are four bits from one another.
+        let with = |bits: u8| {
+            let mut d = [0u8; 32];
+            d[0] = bits;
+            d
+        };
+        let b = with(0);
+        let others = [with(0b11), with(0b1100), with(0b11_0000), with(0b1100_0000)];
+        assert_eq!(
+            distinctive(&[others[0], others[1], b, others[2], others[3]]),
+            b
+        );
+    }
+}

@@ -1,0 +1,414 @@
+//! Local mapping: a new keyframe joins the map with its matched points and new points from its
+//! depth, young points that are rarely found are culled, and a local bundle adjustment refines
+//! the keyframes around it and the points they see.
+//!
+//! Runs synchronously after tracking decides on a keyframe (so results are deterministic and
+//! the live and offline paths agree); its cost is measured per keyframe.
+
+use crate::frame::{Frame, Rig};
+use crate::map::{KeyFrameId, Map, MapPointId};
+use nalgebra::{Vector2, Vector3};
+use std::collections::{HashMap, HashSet};
+use vsgraphs_sgraph::factors::projection::{ProjectionFactor, StereoProjectionFactor};
+use vsgraphs_sgraph::pose_only::{chi2, Measurement, PoseObservation, CHI2_2D, CHI2_3D};
+use vsgraphs_sgraph::{Information, Kernel, Key, Options, Problem, Se3, Solver, Values};
+
+/// Fewest new points a keyframe creates from depth, nearest first, even beyond `close_depth`.
+pub const MIN_NEW_POINTS: usize = 100;
+/// Covisible keyframes (most shared points first) adjusted with a new keyframe.
+pub const LOCAL_WINDOW: usize = 20;
+/// Shared points for a keyframe to join the local window.
+const MIN_SHARED: usize = 15;
+
+/// Adds `frame` as a keyframe at `world_from_camera`. `matches[i]` is the map point keypoint `i`
+/// was matched to (an inlier); unmatched keypoints with depth become new points, all nearer than
+/// `rig.close_depth` and at least [`MIN_NEW_POINTS`]. Returns the keyframe and its new points.
+pub fn insert_keyframe(
+    map: &mut Map,
+    rig: &Rig,
+    frame: Frame,
+    world_from_camera: Se3,
+    matches: &[Option<MapPointId>],
+) -> (KeyFrameId, Vec<MapPointId>) {
+    let keyframe = map.add_keyframe(frame, world_from_camera);
+    for (i, m) in matches.iter().enumerate() {
+        if let Some(p) = *m {
+            if !map.point(p).bad {
+                map.add_observation(p, keyframe, i);
+                map.update_geometry(p, rig);
+            }
+        }
+    }
+    let mut by_depth: Vec<(f64, usize)> = {
+        let kf = map.keyframe(keyframe);
+        kf.frame
+            .keypoints
+            .iter()
+            .enumerate()
+            .filter(|(i, _)| kf.points[*i].is_none())
+            .filter_map(|(i, k)| k.depth.map(|z| (z, i)))
+            .collect()
+    };
+    by_depth.sort_by(|a, b| a.0.total_cmp(&b.0));
+    let mut created = Vec::new();
+    for (z, i) in by_depth {
+        if z > rig.close_depth && created.len() >= MIN_NEW_POINTS {
+            break;
+        }
+        let kf = map.keyframe(keyframe);
+        let p_c = kf
+            .frame
+            .back_project(i, &rig.camera)
+            .expect("keypoints with depth");
+        let p_w = kf.world_from_camera.transform_point(&p_c);
+        created.push(map.add_point(p_w, keyframe, i, rig));
+    }
+    (keyframe, created)
+}
+
+/// Neighbours a new keyframe's points are fused with (ORB-SLAM: 10, and 5 of each's).
+const FUSE_NEIGHBOURS: usize = 10;
+const FUSE_SECOND_NEIGHBOURS: usize = 5;
+/// Search window half-side for fusion, pixels at level 0.
+const FUSE_WINDOW: f64 = 3.0;
+
+/// Fuses `keyframe` with its neighbours both ways: each point of one is projected into the
+/// other; a keypoint there with a close descriptor that reprojects within the χ² gate either
+/// gains the observation or, when it already has a point, the two points are merged (into
+/// the one more keyframes see). This is how points gain the observations that keyframe
+/// decisions and culling count, and how duplicates from depth disappear. Returns
+/// (observations added, points merged).
+pub fn fuse_with_neighbours(map: &mut Map, rig: &Rig, keyframe: KeyFrameId) -> (usize, usize) {
+    let mut neighbours: Vec<KeyFrameId> = Vec::new();
+    let first: Vec<KeyFrameId> = map
+        .covisible(keyframe)
+        .into_iter()
+        .take(FUSE_NEIGHBOURS)
+        .map(|(k, _)| k)
+        .collect();
+    for &k in &first {
+        if !neighbours.contains(&k) {
+            neighbours.push(k);
+        }
+        for &(n, _) in map.neighbours(k).iter().take(FUSE_SECOND_NEIGHBOURS) {
+            if n != keyframe && !neighbours.contains(&n) {
+                neighbours.push(n);
+            }
+        }
+    }
+    let (mut added, mut merged) = (0, 0);
+    for &n in &neighbours {
+        let points: Vec<MapPointId> = map
+            .keyframe(keyframe)
+            .points
+            .iter()
+            .flatten()
+            .copied()
+            .collect();
+        let (a, m) = fuse_into(map, rig, n, &points);
+        added += a;
+        merged += m;
+    }
+    let mut theirs: Vec<MapPointId> = Vec::new();
+    let mut seen = HashSet::new();
+    for &n in &neighbours {
+        for p in map.keyframe(n).points.iter().flatten() {
+            if seen.insert(*p) {
+                theirs.push(*p);
+            }
+        }
+    }
+    let (a, m) = fuse_into(map, rig, keyframe, &theirs);
+    added += a;
+    merged += m;
+    let live: Vec<MapPointId> = map
+        .keyframe(keyframe)
+        .points
+        .iter()
+        .flatten()
+        .copied()
+        .collect();
+    for p in live {
+        map.update_geometry(p, rig);
+    }
+    (added, merged)
+}
+
+/// Projects `points` into `target` and fuses them with its keypoints.
+fn fuse_into(
+    map: &mut Map,
+    rig: &Rig,
+    target: KeyFrameId,
+    points: &[MapPointId],
+) -> (usize, usize) {
+    let (mut added, mut merged) = (0, 0);
+    let camera_from_world = map.keyframe(target).world_from_camera.inverse();
+    let centre = map.keyframe(target).camera_centre();
+    let mut near = Vec::new();
+    for &p in points {
+        let point = map.point(p);
+        if point.bad || point.observations.iter().any(|&(k, _)| k == target) {
+            continue;
+        }
+        let Some((p_c, u, v)) = crate::matcher::project(rig, &camera_from_world, &point.position)
+        else {
+            continue;
+        };
+        let offset = point.position - centre;
+        let distance = offset.norm();
+        if distance < 0.8 * point.min_distance
+            || distance > 1.2 * point.max_distance
+            || -offset.dot(&point.normal) < 0.5 * distance
+        {
+            continue;
+        }
+        let level = rig.predict_level(point.max_distance, distance);
+        let right_u = u - rig.bf / p_c.z;
+        let kf = map.keyframe(target);
+        kf.frame.in_area(
+            u,
+            v,
+            FUSE_WINDOW * rig.scale(level),
+            level.saturating_sub(1),
+            level,
+            &mut near,
+        );
+        let mut best: Option<(u32, usize)> = None;
+        for &i in &near {
+            let k = &kf.frame.keypoints[i];
+            let information = rig.information(usize::from(k.level));
+            let (du, dv) = (u - k.x, v - k.y);
+            let chi2 = match k.right_x {
+                Some(r) => (du * du + dv * dv + (right_u - r).powi(2)) * information,
+                None => (du * du + dv * dv) * information,
+            };
+            let limit = if k.right_x.is_some() {
+                CHI2_3D
+            } else {
+                CHI2_2D
+            };
+            if chi2 > limit {
+                continue;
+            }
+            let d = crate::frame::hamming(&point.descriptor, &kf.frame.descriptors[i]);
+            if best.is_none_or(|(b, _)| d < b) {
+                best = Some((d, i));
+            }
+        }
+        let Some((d, i)) = best else { continue };
+        if d > crate::matcher::TH_LOW {
+            continue;
+        }
+        match map.keyframe(target).points[i] {
+            Some(other) if !map.point(other).bad => {
+                if map.point(other).observations.len() >= map.point(p).observations.len() {
+                    map.replace_point(p, other);
+                } else {
+                    map.replace_point(other, p);
+                }
+                merged += 1;
+            }
+            _ => {
+                map.add_observation(p, target, i);
+                added += 1;
+            }
+        }
+    }
+    (added, merged)
+}
+
+/// Culls recently created points that tracking rarely finds (found in under a quarter of the
+/// frames that should see them) or that too few keyframes observe two keyframes after their
+/// birth; points three keyframes old leave the recent list. Returns how many were culled.
+pub fn cull_recent_points(
+    map: &mut Map,
+    recent: &mut Vec<MapPointId>,
+    current: KeyFrameId,
+) -> usize {
+    let mut culled = 0;
+    recent.retain(|&p| {
+        let point = map.point(p);
+        if point.bad {
+            return false;
+        }
+        let age = current.0.saturating_sub(point.first_keyframe.0);
+        if point.found_ratio() < 0.25 || (age >= 2 && point.observations.len() < 3) {
+            map.cull_point(p);
+            culled += 1;
+            false
+        } else {
+            age < 3
+        }
+    });
+    culled
+}
+
+/// What a local bundle adjustment did.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct LocalBaReport {
+    pub keyframes: usize,
+    pub fixed_keyframes: usize,
+    pub points: usize,
+    pub observations: usize,
+    /// Observations dropped as outliers afterwards.
+    pub outliers: usize,
+    pub initial_cost: f64,
+    pub final_cost: f64,
+}
+
+/// Adjusts `keyframe`, its covisible window and the points they see; keyframes outside the
+/// window that see those points hold still, and so does the map's first keyframe (the gauge).
+pub fn local_bundle_adjustment(
+    map: &mut Map,
+    rig: &Rig,
+    keyframe: KeyFrameId,
+    iterations: usize,
+) -> Result<LocalBaReport, vsgraphs_sgraph::SolveError> {
+    let mut window: Vec<KeyFrameId> = vec![keyframe];
+    window.extend(
+        map.covisible(keyframe)
+            .into_iter()
+            .filter(|&(_, shared)| shared >= MIN_SHARED)
+            .take(LOCAL_WINDOW - 1)
+            .map(|(k, _)| k),
+    );
+    let in_window: HashSet<KeyFrameId> = window.iter().copied().collect();
+    let mut points: Vec<MapPointId> = Vec::new();
+    let mut seen = HashSet::new();
+    for &k in &window {
+        for p in map.keyframe(k).points.iter().flatten() {
+            if !map.point(*p).bad && seen.insert(*p) {
+                points.push(*p);
+            }
+        }
+    }
+    let mut values = Values::new();
+    let mut pose_keys: HashMap<KeyFrameId, Key<Se3>> = HashMap::new();
+    let mut fixed = 0;
+    let mut keyframe_key = |values: &mut Values, k: KeyFrameId, map: &Map| {
+        *pose_keys.entry(k).or_insert_with(|| {
+            let key = values.add(map.keyframe(k).world_from_camera);
+            if !in_window.contains(&k) || k.0 == 0 {
+                values.set_fixed(key.id, true);
+                fixed += 1;
+            }
+            key
+        })
+    };
+    for &k in &window {
+        keyframe_key(&mut values, k, map);
+    }
+    let mut point_keys = Vec::with_capacity(points.len());
+    for &p in &points {
+        point_keys.push(values.add(map.point(p).position));
+    }
+    // Factors; every observation of a local point, from any keyframe.
+    let mut observed: Vec<(MapPointId, KeyFrameId, usize)> = Vec::new();
+    let mut factors = Vec::new();
+    for (&p, &point_key) in points.iter().zip(&point_keys) {
+        for &(k, i) in &map.point(p).observations {
+            let pose_key = keyframe_key(&mut values, k, map);
+            let keypoint = map.keyframe(k).frame.keypoints[i];
+            factors.push((pose_key, point_key, keypoint));
+            observed.push((p, k, i));
+        }
+    }
+    // Without a fixed keyframe the window could drift as a whole (nothing holds the gauge):
+    // hold its oldest keyframe.
+    if fixed == 0 {
+        if let Some(oldest) = window.iter().min() {
+            values.set_fixed(pose_keys[oldest].id, true);
+            fixed = 1;
+        }
+    }
+    let fixed_keyframes = fixed;
+    let mut problem = Problem::new(values);
+    for &(pose_key, point_key, keypoint) in &factors {
+        let information = rig.information(usize::from(keypoint.level));
+        let sigma = 1.0 / information.sqrt();
+        let result = match keypoint.right_x {
+            Some(right) => problem.add(
+                StereoProjectionFactor::new(
+                    pose_key,
+                    point_key,
+                    rig.camera,
+                    rig.bf,
+                    Vector3::new(keypoint.x, keypoint.y, right),
+                ),
+                Information::isotropic(3, sigma).expect("positive sigma"),
+                Some(Kernel::Huber(CHI2_3D.sqrt())),
+            ),
+            None => problem.add(
+                ProjectionFactor::new(
+                    pose_key,
+                    point_key,
+                    rig.camera,
+                    Vector2::new(keypoint.x, keypoint.y),
+                ),
+                Information::isotropic(2, sigma).expect("positive sigma"),
+                Some(Kernel::Huber(CHI2_2D.sqrt())),
+            ),
+        };
+        result.expect("keys made above");
+    }
+    let mut solver = Solver::new(Options {
+        max_iterations: iterations,
+        threads: 1,
+        ..Options::default()
+    });
+    let report = solver.solve(&mut problem)?;
+    let values = problem.into_values();
+    for &k in &window {
+        if let Some(key) = pose_keys.get(&k) {
+            map.keyframe_mut(k).world_from_camera = *values.get(*key);
+        }
+    }
+    for (&p, &key) in points.iter().zip(&point_keys) {
+        map.point_mut(p).position = *values.get(key);
+    }
+    // Observations the adjusted map does not explain are dropped.
+    let mut outliers = 0;
+    for &(p, k, i) in &observed {
+        if map.point(p).bad {
+            continue;
+        }
+        let kf = map.keyframe(k);
+        let keypoint = kf.frame.keypoints[i];
+        let observation = PoseObservation {
+            point_in_world: map.point(p).position,
+            measured: match keypoint.right_x {
+                Some(r) => Measurement::Stereo(Vector3::new(keypoint.x, keypoint.y, r)),
+                None => Measurement::Mono(Vector2::new(keypoint.x, keypoint.y)),
+            },
+            information: rig.information(usize::from(keypoint.level)),
+        };
+        let limit = if keypoint.right_x.is_some() {
+            CHI2_3D
+        } else {
+            CHI2_2D
+        };
+        let depth = kf
+            .world_from_camera
+            .inverse()
+            .transform_point(&observation.point_in_world)
+            .z;
+        if depth <= 0.0 || chi2(&rig.camera, rig.bf, &kf.world_from_camera, &observation) > limit {
+            map.erase_observation(p, k);
+            outliers += 1;
+        }
+    }
+    for &p in &points {
+        if !map.point(p).bad {
+            map.update_geometry(p, rig);
+        }
+    }
+    Ok(LocalBaReport {
+        keyframes: window.len(),
+        fixed_keyframes,
+        points: points.len(),
+        observations: observed.len(),
+        outliers,
+        initial_cost: report.initial_cost,
+        final_cost: report.final_cost,
+    })
+}

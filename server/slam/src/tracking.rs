@@ -1,0 +1,973 @@
+//! Tracking one robot, frame by frame, as ORB-SLAM does for RGB-D:
+//!
+//! 1. the first frame with enough depth starts a map (identity pose, points from depth);
+//! 2. a constant-velocity prediction (scaled by the time since the last frame) finds the last
+//!    frame's points by projection (its map points, plus temporary points from its close depth,
+//!    a visual-odometry link that survives sparse maps); without enough matches, the reference
+//!    keyframe is matched by descriptors alone; the pose is then optimised robustly;
+//! 3. the local map (points of keyframes that share points with the frame, and of their best
+//!    neighbours) is projected and matched, and the pose optimised again;
+//! 4. a keyframe is made when the frame tracks clearly fewer points than its reference keyframe
+//!    or sees many close points the map lacks, and local mapping runs on it;
+//! 5. when tracking fails the robot is lost: each frame tries to relocalise against keyframes
+//!    (descriptor matches, a three-point RANSAC on the matches' depths, pose optimisation, the
+//!    local map); after `new_map_after_s` without success a new map starts in the Atlas.
+
+use crate::frame::{Descriptor, Frame, Rig};
+use crate::map::{Atlas, KeyFrameId, Map, MapPointId};
+use crate::mapping;
+use crate::matcher::{self, Projected, SearchOptions, TH_HIGH};
+use nalgebra::{Matrix3, Vector2, Vector3};
+use std::collections::{HashMap, HashSet};
+use std::time::{Duration, Instant};
+use thiserror::Error;
+use vsgraphs_sgraph::pose_only::{
+    optimise_pose, Measurement, PoseObservation, PoseOnlyOptions, PoseOnlyResult,
+};
+use vsgraphs_sgraph::{Pinhole, Se3};
+use vsgraphs_vision::depth::DepthImage;
+use vsgraphs_vision::opencv::core::Mat;
+use vsgraphs_vision::orb::{OrbExtractor, OrbParams};
+use vsgraphs_vision::CvError;
+
+/// Tracking settings; defaults are ORB-SLAM's for RGB-D where it has one.
+#[derive(Clone, Debug, PartialEq)]
+pub struct TrackerConfig {
+    pub orb: OrbParams,
+    /// Virtual stereo baseline that turns depth into a right-image coordinate, metres.
+    pub virtual_baseline_m: f64,
+    /// Points nearer than this many baselines are "close" (trusted at once).
+    pub close_depth_baselines: f64,
+    /// Keypoints with depth a frame needs to start a map.
+    pub min_initial_points: usize,
+    /// Map-point inliers that make a frame tracked.
+    pub min_inliers: usize,
+    /// A keyframe when a frame tracks fewer than this fraction of its reference keyframe's points.
+    pub keyframe_ratio: f64,
+    /// Iterations of local bundle adjustment per keyframe (0: none).
+    pub local_ba_iterations: usize,
+    /// Lost this long without relocalising: a new map starts, seconds.
+    pub new_map_after_s: f64,
+    /// Keyframes tried for relocalisation per frame (the most recent first, then round-robin).
+    pub relocalisation_candidates: usize,
+}
+
+impl Default for TrackerConfig {
+    fn default() -> Self {
+        Self {
+            orb: OrbParams::default(),
+            virtual_baseline_m: 0.08,
+            close_depth_baselines: 40.0,
+            min_initial_points: 300,
+            min_inliers: 30,
+            keyframe_ratio: 0.5,
+            local_ba_iterations: 10,
+            new_map_after_s: 3.0,
+            relocalisation_candidates: 4,
+        }
+    }
+}
+
+/// What tracking knows about the robot.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum TrackingState {
+    /// No map yet: waiting for a frame with enough texture and depth.
+    Initialising,
+    Tracking,
+    /// Tracking failed; relocalising.
+    Lost,
+}
+
+impl TrackingState {
+    pub fn code(self) -> &'static str {
+        match self {
+            TrackingState::Initialising => "initialising",
+            TrackingState::Tracking => "tracking",
+            TrackingState::Lost => "lost",
+        }
+    }
+}
+
+/// Time spent per stage on one frame.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct StageTimes {
+    pub features: Duration,
+    pub tracking: Duration,
+    pub mapping: Duration,
+}
+
+/// What happened to one frame.
+#[derive(Clone, Debug, PartialEq)]
+pub struct FrameResult {
+    pub state: TrackingState,
+    /// The pose in the active map, when tracked.
+    pub world_from_camera: Option<Se3>,
+    /// Index of the map in the Atlas the pose is in.
+    pub map: usize,
+    pub features: usize,
+    pub features_with_depth: usize,
+    /// Map points the final pose explains.
+    pub inliers: usize,
+    pub keyframe: Option<KeyFrameId>,
+    /// Something worth a log line: a map started, tracking lost, relocalised.
+    pub event: Option<String>,
+    pub times: StageTimes,
+}
+
+#[derive(Debug, Error)]
+pub enum TrackError {
+    #[error(transparent)]
+    Features(#[from] CvError),
+    #[error("local bundle adjustment failed: {0}")]
+    LocalBa(#[from] vsgraphs_sgraph::SolveError),
+}
+
+/// The previous frame, as the next one is tracked against it.
+struct LastFrame {
+    frame: Frame,
+    world_from_camera: Se3,
+    /// Map point inliers per keypoint.
+    points: Vec<Option<MapPointId>>,
+}
+
+/// Where a matched 3-D point came from.
+#[derive(Clone, Copy, Debug)]
+enum Source {
+    Point(MapPointId),
+    /// A point of the last frame's depth that the map does not hold.
+    Temporary(Vector3<f64>),
+}
+
+/// Search window half-sides, pixels at level 0 (ORB-SLAM's RGB-D values).
+const LAST_FRAME_WINDOW: f64 = 15.0;
+const LOCAL_MAP_WINDOW: f64 = 3.0;
+/// Local keyframes at most.
+const MAX_LOCAL_KEYFRAMES: usize = 80;
+/// Temporary points from the last frame's depth: the nearest this many at least.
+const MIN_TEMPORARY: usize = 100;
+
+/// Tracks one robot's frames and owns its Atlas.
+pub struct Tracker {
+    config: TrackerConfig,
+    extractor: OrbExtractor,
+    rig: Option<Rig>,
+    atlas: Atlas,
+    state: TrackingState,
+    last: Option<LastFrame>,
+    /// Motion over the last interval (`previous⁻¹ · last`) and its length in ns.
+    velocity: Option<(Se3, u64)>,
+    reference: Option<KeyFrameId>,
+    recent_points: Vec<MapPointId>,
+    lost_since_ns: Option<u64>,
+    relocalised_ns: Option<u64>,
+    /// Next keyframe to try when relocalising (round-robin).
+    relocalisation_cursor: usize,
+}
+
+impl Tracker {
+    pub fn new(config: TrackerConfig) -> Result<Self, TrackError> {
+        let extractor = OrbExtractor::new(config.orb.clone())?;
+        Ok(Self {
+            config,
+            extractor,
+            rig: None,
+            atlas: Atlas::default(),
+            state: TrackingState::Initialising,
+            last: None,
+            velocity: None,
+            reference: None,
+            recent_points: Vec::new(),
+            lost_since_ns: None,
+            relocalised_ns: None,
+            relocalisation_cursor: 0,
+        })
+    }
+
+    pub fn state(&self) -> TrackingState {
+        self.state
+    }
+
+    pub fn atlas(&self) -> &Atlas {
+        &self.atlas
+    }
+
+    pub fn config(&self) -> &TrackerConfig {
+        &self.config
+    }
+
+    /// The robot restarted (a new session): its motion is unknown, so it relocalises in the
+    /// map it had, or starts a new one.
+    pub fn restart(&mut self) {
+        if self.state == TrackingState::Tracking {
+            self.state = TrackingState::Lost;
+        }
+        self.last = None;
+        self.velocity = None;
+        self.lost_since_ns = None;
+    }
+
+    fn rig_for(&self, camera: &Pinhole, width: u32, height: u32) -> Rig {
+        Rig {
+            camera: *camera,
+            width,
+            height,
+            bf: camera.fx * self.config.virtual_baseline_m,
+            close_depth: self.config.close_depth_baselines * self.config.virtual_baseline_m,
+            scale_factor: self.config.orb.scale_factor,
+            levels: self.config.orb.levels.max(1),
+        }
+    }
+
+    /// Tracks one frame: an 8-bit grey image and its registered depth, with the camera's
+    /// rectified intrinsics.
+    pub fn track(
+        &mut self,
+        timestamp_ns: u64,
+        camera: &Pinhole,
+        grey: &Mat,
+        depth: &DepthImage,
+    ) -> Result<FrameResult, TrackError> {
+        let started = Instant::now();
+        let rig = self.rig_for(camera, depth.width, depth.height);
+        let mut event = None;
+        if self.rig.as_ref().is_some_and(|r| r != &rig) {
+            // Another camera: poses in the old map mean nothing for it.
+            self.start_new_map();
+            event = Some("camera changed: a new map starts".to_owned());
+        }
+        self.rig = Some(rig.clone());
+        let extraction = self.extractor.extract(grey, Some((depth, rig.bf)))?;
+        let frame = Frame::new(timestamp_ns, &extraction, &rig);
+        let mut times = StageTimes {
+            features: started.elapsed(),
+            ..StageTimes::default()
+        };
+        let mut result = FrameResult {
+            state: self.state,
+            world_from_camera: None,
+            map: self.atlas.active_index().unwrap_or(0),
+            features: frame.len(),
+            features_with_depth: frame.with_depth(),
+            inliers: 0,
+            keyframe: None,
+            event,
+            times,
+        };
+        let tracking_started = Instant::now();
+        let tracked = match self.state {
+            TrackingState::Initialising => self.initialise(frame, &rig, &mut result),
+            TrackingState::Tracking => {
+                let outcome = self.track_frame(&frame, &rig);
+                if outcome.is_none() {
+                    self.state = TrackingState::Lost;
+                    self.lost_since_ns = Some(timestamp_ns);
+                    self.velocity = None;
+                    result.event = Some("tracking lost".to_owned());
+                }
+                outcome.map(|o| (frame, o))
+            }
+            TrackingState::Lost => {
+                let outcome = self.relocalise(&frame, &rig);
+                match outcome {
+                    Some(o) => {
+                        self.state = TrackingState::Tracking;
+                        self.lost_since_ns = None;
+                        self.relocalised_ns = Some(timestamp_ns);
+                        result.event = Some("relocalised".to_owned());
+                        Some((frame, o))
+                    }
+                    None => {
+                        let since = *self.lost_since_ns.get_or_insert(timestamp_ns);
+                        let lost_for = timestamp_ns.saturating_sub(since) as f64 * 1e-9;
+                        if lost_for >= self.config.new_map_after_s {
+                            self.start_new_map();
+                            self.initialise(frame, &rig, &mut result);
+                            if self.state == TrackingState::Tracking {
+                                result.event = Some(format!(
+                                    "lost for {lost_for:.1} s: map {} started",
+                                    result.map
+                                ));
+                            }
+                        }
+                        None
+                    }
+                }
+            }
+        };
+        times.tracking = tracking_started.elapsed();
+        if let Some((frame, outcome)) = tracked {
+            let mapping_started = Instant::now();
+            let keyframe = self.finish_frame(frame, outcome, &rig, &mut result)?;
+            result.keyframe = keyframe;
+            times.mapping = mapping_started.elapsed();
+        }
+        result.state = self.state;
+        result.times = times;
+        if result.world_from_camera.is_some() || self.state != TrackingState::Initialising {
+            result.map = self.atlas.active_index().unwrap_or(0);
+        }
+        Ok(result)
+    }
+
+    fn start_new_map(&mut self) {
+        self.state = TrackingState::Initialising;
+        self.last = None;
+        self.velocity = None;
+        self.reference = None;
+        self.recent_points.clear();
+        self.lost_since_ns = None;
+        self.relocalisation_cursor = 0;
+    }
+
+    fn map(&self) -> &Map {
+        self.atlas.maps.last().expect("a map exists while tracking")
+    }
+
+    fn map_mut(&mut self) -> &mut Map {
+        self.atlas
+            .maps
+            .last_mut()
+            .expect("a map exists while tracking")
+    }
+
+    /// Starts a map from a frame with enough depth; returns nothing to finish (the frame becomes
+    /// the first keyframe here).
+    fn initialise(
+        &mut self,
+        frame: Frame,
+        rig: &Rig,
+        result: &mut FrameResult,
+    ) -> Option<(Frame, Tracked)> {
+        if frame.with_depth() < self.config.min_initial_points {
+            return None;
+        }
+        let needs_map = self.atlas.active().is_none_or(|m| !m.keyframes.is_empty());
+        if needs_map {
+            self.atlas.maps.push(Map::default());
+        }
+        let pose = Se3::identity();
+        let n = frame.len();
+        // Every keypoint with depth becomes a point of the first keyframe.
+        let map = self.map_mut();
+        let keyframe = map.add_keyframe(frame, pose);
+        let mut created = 0;
+        for i in 0..n {
+            let kf = map.keyframe(keyframe);
+            if let Some(p_c) = kf.frame.back_project(i, &rig.camera) {
+                map.add_point(p_c, keyframe, i, rig);
+                created += 1;
+            }
+        }
+        let kf = self.map().keyframe(keyframe);
+        self.last = Some(LastFrame {
+            frame: kf.frame.clone(),
+            world_from_camera: pose,
+            points: kf.points.clone(),
+        });
+        self.reference = Some(keyframe);
+        self.state = TrackingState::Tracking;
+        result.world_from_camera = Some(pose);
+        result.inliers = created;
+        result.keyframe = Some(keyframe);
+        result.map = self.atlas.active_index().unwrap_or(0);
+        result.event = Some(format!("map {} started with {created} points", result.map));
+        None
+    }
+
+    /// The pose the constant-velocity model predicts for a frame at `timestamp_ns`.
+    fn predict(&self, last: &LastFrame, timestamp_ns: u64) -> Se3 {
+        let Some((velocity, interval)) = self.velocity else {
+            return last.world_from_camera;
+        };
+        let elapsed = timestamp_ns.saturating_sub(last.frame.timestamp_ns) as f64;
+        let ratio = (elapsed / interval.max(1) as f64).clamp(0.0, 3.0);
+        let motion = Se3::exp(&(velocity.log() * ratio));
+        last.world_from_camera.compose(&motion)
+    }
+
+    /// Tracks against the last frame and the local map; `None` when the frame cannot be placed.
+    fn track_frame(&mut self, frame: &Frame, rig: &Rig) -> Option<Tracked> {
+        let last = self.last.as_ref()?;
+        let predicted = self.predict(last, frame.timestamp_ns);
+        let mut matched = self.track_last_frame(frame, rig, last, &predicted);
+        if matched.as_ref().is_none_or(|m| m.inliers < 10) {
+            matched = self.track_reference_keyframe(frame, rig, &last.world_from_camera);
+        }
+        let matched = matched?;
+        let relocalised_recently = self
+            .relocalised_ns
+            .is_some_and(|t| frame.timestamp_ns.saturating_sub(t) < 1_000_000_000);
+        self.track_local_map(frame, rig, matched, relocalised_recently)
+    }
+
+    /// Matches the last frame's points by projection from the predicted pose.
+    fn track_last_frame(
+        &self,
+        frame: &Frame,
+        rig: &Rig,
+        last: &LastFrame,
+        predicted: &Se3,
+    ) -> Option<Matched> {
+        let map = self.map();
+        // The last frame's 3-D points: its map points, and its nearest depth readings.
+        let mut sources: Vec<(usize, Source)> = Vec::new();
+        let mut temporary: Vec<(f64, usize)> = Vec::new();
+        for (i, k) in last.frame.keypoints.iter().enumerate() {
+            match last.points[i] {
+                Some(p) if !map.point(p).bad => sources.push((i, Source::Point(p))),
+                _ => {
+                    if let Some(z) = k.depth {
+                        temporary.push((z, i));
+                    }
+                }
+            }
+        }
+        temporary.sort_by(|a, b| a.0.total_cmp(&b.0));
+        for (count, (z, i)) in temporary.into_iter().enumerate() {
+            if z > rig.close_depth && count >= MIN_TEMPORARY {
+                break;
+            }
+            let p_c = last.frame.back_project(i, &rig.camera)?;
+            sources.push((
+                i,
+                Source::Temporary(last.world_from_camera.transform_point(&p_c)),
+            ));
+        }
+        let camera_from_world = predicted.inverse();
+        let project = |window: f64| -> (Vec<Projected>, Vec<Source>) {
+            let mut projected = Vec::new();
+            let mut kept = Vec::new();
+            for &(i, source) in &sources {
+                let position = match source {
+                    Source::Point(p) => map.point(p).position,
+                    Source::Temporary(x) => x,
+                };
+                let Some((p_c, u, v)) = matcher::project(rig, &camera_from_world, &position) else {
+                    continue;
+                };
+                let k = &last.frame.keypoints[i];
+                let level = usize::from(k.level);
+                projected.push(Projected {
+                    u,
+                    v,
+                    right_u: u - rig.bf / p_c.z,
+                    min_level: level.saturating_sub(1),
+                    max_level: level + 1,
+                    radius: window * rig.scale(level),
+                    descriptor: last.frame.descriptors[i],
+                    angle: Some(k.angle),
+                });
+                kept.push(source);
+            }
+            (projected, kept)
+        };
+        let options = SearchOptions {
+            max_distance: TH_HIGH,
+            ratio: None,
+            check_orientation: true,
+        };
+        let no_taken = vec![false; frame.len()];
+        let (projected, kept) = project(LAST_FRAME_WINDOW);
+        let mut matches = matcher::search_by_projection(frame, &projected, &no_taken, &options);
+        let mut kept = kept;
+        if matches.len() < 20 {
+            let (projected, wider) = project(2.0 * LAST_FRAME_WINDOW);
+            matches = matcher::search_by_projection(frame, &projected, &no_taken, &options);
+            kept = wider;
+        }
+        if matches.len() < 10 {
+            return None;
+        }
+        let pairs: Vec<(usize, Source)> = matches.iter().map(|&(c, i)| (i, kept[c])).collect();
+        Some(self.optimise(frame, rig, predicted, pairs))
+    }
+
+    /// Matches the reference keyframe's map points by descriptor alone (no pose needed).
+    fn track_reference_keyframe(&self, frame: &Frame, rig: &Rig, start: &Se3) -> Option<Matched> {
+        let map = self.map();
+        let reference = map.keyframe(self.reference?);
+        let mut query: Vec<(Descriptor, f32)> = Vec::new();
+        let mut points = Vec::new();
+        for (i, p) in reference.points.iter().enumerate() {
+            if let Some(p) = p.filter(|p| !map.point(*p).bad) {
+                query.push((map.point(p).descriptor, reference.frame.keypoints[i].angle));
+                points.push(p);
+            }
+        }
+        let matches = matcher::match_descriptors(&query, frame, 0.7, true);
+        if matches.len() < 15 {
+            return None;
+        }
+        let pairs = matches
+            .into_iter()
+            .map(|(q, i)| (i, Source::Point(points[q])))
+            .collect();
+        let matched = self.optimise(frame, rig, start, pairs);
+        (matched.inliers >= 10).then_some(matched)
+    }
+
+    /// Optimises the pose on `(keypoint, source)` pairs and keeps the inliers.
+    fn optimise(
+        &self,
+        frame: &Frame,
+        rig: &Rig,
+        start: &Se3,
+        pairs: Vec<(usize, Source)>,
+    ) -> Matched {
+        let map = self.map();
+        let observations: Vec<PoseObservation> = pairs
+            .iter()
+            .map(|&(i, source)| {
+                observation(
+                    frame,
+                    rig,
+                    i,
+                    match source {
+                        Source::Point(p) => map.point(p).position,
+                        Source::Temporary(x) => x,
+                    },
+                )
+            })
+            .collect();
+        let PoseOnlyResult {
+            world_from_camera,
+            inliers,
+            ..
+        } = optimise_pose(
+            start,
+            &rig.camera,
+            rig.bf,
+            &observations,
+            &PoseOnlyOptions::default(),
+        );
+        let pairs: Vec<(usize, Source)> = pairs
+            .into_iter()
+            .zip(inliers)
+            .filter_map(|(pair, inlier)| inlier.then_some(pair))
+            .collect();
+        Matched {
+            world_from_camera,
+            inliers: pairs.len(),
+            pairs,
+        }
+    }
+
+    /// Projects the local map into the frame, matches it, and optimises the pose again on map
+    /// points only.
+    fn track_local_map(
+        &mut self,
+        frame: &Frame,
+        rig: &Rig,
+        matched: Matched,
+        relocalised_recently: bool,
+    ) -> Option<Tracked> {
+        let map = self.map();
+        let mut points: Vec<Option<MapPointId>> = vec![None; frame.len()];
+        for &(i, source) in &matched.pairs {
+            if let Source::Point(p) = source {
+                points[i] = Some(p);
+            }
+        }
+        // Local keyframes: those sharing points with the frame, then their best neighbours.
+        let mut shared: HashMap<KeyFrameId, usize> = HashMap::new();
+        for p in points.iter().flatten() {
+            for &(k, _) in &map.point(*p).observations {
+                *shared.entry(k).or_default() += 1;
+            }
+        }
+        let mut local: Vec<(KeyFrameId, usize)> = shared.into_iter().collect();
+        local.sort_by(|a, b| b.1.cmp(&a.1).then(a.0.cmp(&b.0)));
+        let reference = local.first().map(|&(k, _)| k).or(self.reference);
+        let mut keyframes: Vec<KeyFrameId> = local.iter().map(|&(k, _)| k).collect();
+        let mut in_local: HashSet<KeyFrameId> = keyframes.iter().copied().collect();
+        for &(k, _) in local.iter().take(MAX_LOCAL_KEYFRAMES) {
+            for &(n, _) in map.neighbours(k).iter().take(10) {
+                if keyframes.len() >= MAX_LOCAL_KEYFRAMES {
+                    break;
+                }
+                if in_local.insert(n) {
+                    keyframes.push(n);
+                }
+            }
+        }
+        // The last keyframe always, so that the newest points are looked for.
+        if let Some(newest) = map.keyframes.last().map(|k| k.id) {
+            if in_local.insert(newest) {
+                keyframes.push(newest);
+            }
+        }
+        let camera_from_world = matched.world_from_camera.inverse();
+        let centre = matched.world_from_camera.translation;
+        let mut candidates = Vec::new();
+        let mut candidate_points = Vec::new();
+        let mut considered: HashSet<MapPointId> = points.iter().flatten().copied().collect();
+        let mut visible: Vec<MapPointId> = considered.iter().copied().collect();
+        let window = if relocalised_recently {
+            5.0
+        } else {
+            LOCAL_MAP_WINDOW
+        };
+        for &k in &keyframes {
+            for p in map.keyframe(k).points.iter().flatten() {
+                if !considered.insert(*p) {
+                    continue;
+                }
+                let point = map.point(*p);
+                if point.bad {
+                    continue;
+                }
+                let Some((p_c, u, v)) = matcher::project(rig, &camera_from_world, &point.position)
+                else {
+                    continue;
+                };
+                let offset = point.position - centre;
+                let distance = offset.norm();
+                if distance < 0.8 * point.min_distance || distance > 1.2 * point.max_distance {
+                    continue;
+                }
+                let view_cos = -offset.dot(&point.normal) / distance;
+                if view_cos < 0.5 {
+                    continue;
+                }
+                let level = rig.predict_level(point.max_distance, distance);
+                let factor = if view_cos > 0.998 { 2.5 } else { 4.0 };
+                candidates.push(Projected {
+                    u,
+                    v,
+                    right_u: u - rig.bf / p_c.z,
+                    min_level: level.saturating_sub(1),
+                    max_level: level,
+                    radius: window * factor * rig.scale(level),
+                    descriptor: point.descriptor,
+                    angle: None,
+                });
+                candidate_points.push(*p);
+                visible.push(*p);
+            }
+        }
+        let taken: Vec<bool> = points.iter().map(Option::is_some).collect();
+        let options = SearchOptions {
+            max_distance: TH_HIGH,
+            ratio: Some(0.8),
+            check_orientation: false,
+        };
+        let found = matcher::search_by_projection(frame, &candidates, &taken, &options);
+        let mut pairs: Vec<(usize, Source)> = points
+            .iter()
+            .enumerate()
+            .filter_map(|(i, p)| p.map(|p| (i, Source::Point(p))))
+            .collect();
+        pairs.extend(
+            found
+                .into_iter()
+                .map(|(c, i)| (i, Source::Point(candidate_points[c]))),
+        );
+        let refined = self.optimise(frame, rig, &matched.world_from_camera, pairs);
+        let needed = if relocalised_recently {
+            self.config.min_inliers.max(50)
+        } else {
+            self.config.min_inliers
+        };
+        // Statistics for culling: every point in view was visible; inliers were found.
+        let map = self.map_mut();
+        for p in visible {
+            map.point_mut(p).visible += 1;
+        }
+        if refined.inliers < needed {
+            return None;
+        }
+        let mut inliers: Vec<Option<MapPointId>> = vec![None; frame.len()];
+        for &(i, source) in &refined.pairs {
+            if let Source::Point(p) = source {
+                map.point_mut(p).found += 1;
+                inliers[i] = Some(p);
+            }
+        }
+        Some(Tracked {
+            world_from_camera: refined.world_from_camera,
+            points: inliers,
+            inliers: refined.inliers,
+            reference,
+        })
+    }
+
+    /// Tries the next few keyframes: descriptor matches, a RANSAC pose from the matches'
+    /// depths, pose optimisation, then the local map.
+    fn relocalise(&mut self, frame: &Frame, rig: &Rig) -> Option<Tracked> {
+        let keyframes = self.atlas.active()?.keyframes.len();
+        if keyframes == 0 {
+            return None;
+        }
+        let tries = self.config.relocalisation_candidates.min(keyframes);
+        for _ in 0..tries {
+            // Newest first, then backwards through the map.
+            let k = KeyFrameId((keyframes - 1 - self.relocalisation_cursor % keyframes) as u32);
+            self.relocalisation_cursor += 1;
+            let Some(matched) = self.relocalise_against(frame, rig, k) else {
+                continue;
+            };
+            if let Some(tracked) = self.track_local_map(frame, rig, matched, true) {
+                self.relocalisation_cursor = 0;
+                return Some(tracked);
+            }
+        }
+        None
+    }
+
+    fn relocalise_against(&self, frame: &Frame, rig: &Rig, k: KeyFrameId) -> Option<Matched> {
+        let map = self.map();
+        let keyframe = map.keyframe(k);
+        let mut query = Vec::new();
+        let mut points = Vec::new();
+        for (i, p) in keyframe.points.iter().enumerate() {
+            if let Some(p) = p.filter(|p| !map.point(*p).bad) {
+                query.push((map.point(p).descriptor, keyframe.frame.keypoints[i].angle));
+                points.push(p);
+            }
+        }
+        let matches = matcher::match_descriptors(&query, frame, 0.75, true);
+        if matches.len() < 15 {
+            return None;
+        }
+        // (world point, camera point) for matches with depth in this frame.
+        let pairs: Vec<(usize, MapPointId)> =
+            matches.iter().map(|&(q, i)| (i, points[q])).collect();
+        let correspondences: Vec<(Vector3<f64>, Vector3<f64>)> = pairs
+            .iter()
+            .filter_map(|&(i, p)| {
+                frame
+                    .back_project(i, &rig.camera)
+                    .map(|c| (map.point(p).position, c))
+            })
+            .collect();
+        let start = ransac_pose(&correspondences, frame.timestamp_ns)?;
+        let matched = self.optimise(
+            frame,
+            rig,
+            &start,
+            pairs
+                .into_iter()
+                .map(|(i, p)| (i, Source::Point(p)))
+                .collect(),
+        );
+        (matched.inliers >= 15).then_some(matched)
+    }
+
+    /// Makes the tracked frame the last frame, updates the motion model, and inserts a keyframe
+    /// when one is needed.
+    fn finish_frame(
+        &mut self,
+        frame: Frame,
+        tracked: Tracked,
+        rig: &Rig,
+        result: &mut FrameResult,
+    ) -> Result<Option<KeyFrameId>, TrackError> {
+        let timestamp_ns = frame.timestamp_ns;
+        if let Some(last) = &self.last {
+            let interval = timestamp_ns.saturating_sub(last.frame.timestamp_ns);
+            if interval > 0 {
+                let motion = last
+                    .world_from_camera
+                    .inverse()
+                    .compose(&tracked.world_from_camera);
+                self.velocity = Some((motion, interval));
+            }
+        }
+        self.reference = tracked.reference.or(self.reference);
+        result.world_from_camera = Some(tracked.world_from_camera);
+        result.inliers = tracked.inliers;
+        let mut world_from_camera = tracked.world_from_camera;
+        let mut keyframe = None;
+        let mut last_points = tracked.points.clone();
+        if self.needs_keyframe(&frame, rig, &tracked) {
+            let (k, created) = mapping::insert_keyframe(
+                self.map_mut(),
+                rig,
+                frame.clone(),
+                tracked.world_from_camera,
+                &tracked.points,
+            );
+            self.recent_points.extend(created);
+            mapping::fuse_with_neighbours(self.map_mut(), rig, k);
+            let mut recent = std::mem::take(&mut self.recent_points);
+            mapping::cull_recent_points(self.map_mut(), &mut recent, k);
+            self.recent_points = recent;
+            if self.config.local_ba_iterations > 0 {
+                let iterations = self.config.local_ba_iterations;
+                let report = mapping::local_bundle_adjustment(self.map_mut(), rig, k, iterations)?;
+                tracing::trace!(?report, "local bundle adjustment");
+                world_from_camera = self.map().keyframe(k).world_from_camera;
+            }
+            self.map_mut().refresh_neighbours(k);
+            last_points = self.map().keyframe(k).points.clone();
+            self.reference = Some(k);
+            keyframe = Some(k);
+        }
+        self.last = Some(LastFrame {
+            frame,
+            world_from_camera,
+            points: last_points,
+        });
+        Ok(keyframe)
+    }
+
+    /// ORB-SLAM's keyframe rules for RGB-D: clearly fewer points tracked than the reference
+    /// keyframe holds, or many close points the map lacks. ORB-SLAM also waits for its mapping
+    /// thread to be idle or for a timeout; mapping runs inline here, so it is always idle and
+    /// those conditions always hold.
+    fn needs_keyframe(&self, frame: &Frame, rig: &Rig, tracked: &Tracked) -> bool {
+        let map = self.map();
+        let Some(reference) = self.reference else {
+            return true;
+        };
+        let reference_points = map
+            .keyframe(reference)
+            .points
+            .iter()
+            .flatten()
+            .filter(|p| !map.point(**p).bad)
+            .count();
+        let (mut tracked_close, mut untracked_close) = (0, 0);
+        for (k, p) in frame.keypoints.iter().zip(&tracked.points) {
+            if k.depth.is_some_and(|z| z < rig.close_depth) {
+                if p.is_some() {
+                    tracked_close += 1;
+                } else {
+                    untracked_close += 1;
+                }
+            }
+        }
+        let need_close = tracked_close < 100 && untracked_close > 70;
+        let ratio = self.config.keyframe_ratio;
+        let fewer = (tracked.inliers as f64) < ratio * reference_points as f64 || need_close;
+        fewer && tracked.inliers > 15
+    }
+}
+
+/// Inlier pairs and the pose they gave.
+struct Matched {
+    world_from_camera: Se3,
+    pairs: Vec<(usize, Source)>,
+    inliers: usize,
+}
+
+/// A tracked frame.
+struct Tracked {
+    world_from_camera: Se3,
+    /// Map point inliers per keypoint.
+    points: Vec<Option<MapPointId>>,
+    inliers: usize,
+    reference: Option<KeyFrameId>,
+}
+
+/// The pose observation of keypoint `i` of `frame` seeing `point`.
+fn observation(frame: &Frame, rig: &Rig, i: usize, point: Vector3<f64>) -> PoseObservation {
+    let k = &frame.keypoints[i];
+    PoseObservation {
+        point_in_world: point,
+        measured: match k.right_x {
+            Some(right) => Measurement::Stereo(Vector3::new(k.x, k.y, right)),
+            None => Measurement::Mono(Vector2::new(k.x, k.y)),
+        },
+        information: rig.information(usize::from(k.level)),
+    }
+}
+
+/// `world_from_camera` from (world, camera) point pairs by RANSAC over three-point rigid fits:
+/// the fit with most pairs within 5 cm (+2 % of depth), refitted on them. Deterministic for a
+/// given seed.
+fn ransac_pose(pairs: &[(Vector3<f64>, Vector3<f64>)], seed: u64) -> Option<Se3> {
+    if pairs.len() < 6 {
+        return None;
+    }
+    let mut state = seed | 1;
+    let mut next = |n: usize| {
+        state ^= state << 13;
+        state ^= state >> 7;
+        state ^= state << 17;
+        (state % n as u64) as usize
+    };
+    let inliers_of = |pose: &Se3| -> Vec<usize> {
+        pairs
+            .iter()
+            .enumerate()
+            .filter(|(_, (w, c))| (pose.transform_point(c) - w).norm() < 0.05 + 0.02 * c.z)
+            .map(|(i, _)| i)
+            .collect()
+    };
+    let mut best: Vec<usize> = Vec::new();
+    for _ in 0..200 {
+        let (a, b, c) = (next(pairs.len()), next(pairs.len()), next(pairs.len()));
+        if a == b || b == c || a == c {
+            continue;
+        }
+        let Some(pose) = rigid_fit(&[pairs[a], pairs[b], pairs[c]]) else {
+            continue;
+        };
+        let inliers = inliers_of(&pose);
+        if inliers.len() > best.len() {
+            best = inliers;
+        }
+    }
+    if best.len() < 6 {
+        return None;
+    }
+    let chosen: Vec<_> = best.iter().map(|&i| pairs[i]).collect();
+    rigid_fit(&chosen)
+}
+
+/// The rigid transform taking the second points of each pair onto the first (Kabsch).
+fn rigid_fit(pairs: &[(Vector3<f64>, Vector3<f64>)]) -> Option<Se3> {
+    let n = pairs.len() as f64;
+    let mean_w = pairs.iter().map(|p| p.0).sum::<Vector3<f64>>() / n;
+    let mean_c = pairs.iter().map(|p| p.1).sum::<Vector3<f64>>() / n;
+    let mut cross = Matrix3::zeros();
+    for (w, c) in pairs {
+        cross += (w - mean_w) * (c - mean_c).transpose();
+    }
+    let svd = cross.svd(true, true);
+    let (u, v_t) = (svd.u?, svd.v_t?);
+    // Degenerate (collinear) samples have two vanishing singular values.
+    if svd.singular_values[1] < 1e-9 * svd.singular_values[0].max(1e-12) {
+        return None;
+    }
+    let mut d = Matrix3::identity();
+    if (u * v_t).determinant() < 0.0 {
+        d[(2, 2)] = -1.0;
+    }
+    let rotation = u * d * v_t;
+    let rotation = nalgebra::UnitQuaternion::from_matrix(&rotation);
+    let translation = mean_w - rotation * mean_c;
+    Some(Se3::new(rotation, translation))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use nalgebra::UnitQuaternion;
+
+    #[test]
+    fn ransac_finds_the_pose_among_outliers() {
+        let truth = Se3::new(
+            UnitQuaternion::from_euler_angles(0.2, -0.5, 1.0),
+            Vector3::new(1.0, 2.0, -0.5),
+        );
+        let mut pairs = Vec::new();
+        for i in 0..60 {
+            let f = f64::from(i);
+            let c = Vector3::new(
+                (f * 0.37).sin(),
+                (f * 0.91).cos(),
+                1.0 + (f * 0.13).sin().abs() * 3.0,
+            );
+            let mut w = truth.transform_point(&c);
+            if i % 3 == 0 {
+                w += Vector3::new(0.5, -0.7, 0.3) * (1.0 + f * 0.01);
+            }
+            pairs.push((w, c));
+        }
+        let pose = ransac_pose(&pairs, 42).unwrap();
+        let error = truth.local(&pose);
+        assert!(error.norm() < 1e-9, "{error}");
+    }
+}

@@ -1,0 +1,89 @@
+//! Tracking through the whole system: the 7-Scenes frames streamed by the SDK player over real
+//! zenoh to the real server give exactly the trajectory `vsgraphs-server offline` computes from
+//! the same files, and the API reports the robot's tracking.
+
+use std::time::Duration;
+use vsgraphs_proto::api::TrackingState;
+use vsgraphs_sdk::player::{play, PlayOptions, Rate};
+use vsgraphs_sdk::proto::DepthEncoding;
+use vsgraphs_sdk::{dataset, Delivery, Robot, RobotConfig};
+use vsgraphs_server::config::Config;
+use vsgraphs_tests::*;
+
+/// Frames streamed: enough for several keyframes and local bundle adjustments.
+const FRAMES: usize = 120;
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn live_tracking_matches_the_offline_run() {
+    let Some(dir) = data_dir("live_tracking_matches_the_offline_run") else {
+        return;
+    };
+    let dataset = dataset::open(&dir.join("7scenes-a")).unwrap();
+    let offline_dataset = dataset.clone();
+    let (summary, offline) = tokio::task::spawn_blocking(move || {
+        vsgraphs_server::offline::run(
+            &Config::default(),
+            &offline_dataset,
+            Some(FRAMES),
+            |_, _| {},
+        )
+    })
+    .await
+    .unwrap()
+    .unwrap();
+    assert_eq!(summary.tracked, FRAMES, "{:?}", summary.events);
+    assert!(summary.keyframes >= 3, "{} keyframes", summary.keyframes);
+
+    let test = TestServer::start().await;
+    let mut config = RobotConfig::connecting_to("kinect", &test.zenoh_endpoint);
+    config.delivery = Delivery::Reliable;
+    let robot = Robot::connect(config).await.unwrap();
+    // Slow enough that the server never has to drop a frame (a dropped frame would change the
+    // motion model's prediction, and so the trajectory).
+    let options = PlayOptions {
+        rate: Rate::Hz(8.0),
+        depth_codec: DepthEncoding::Rvl,
+        limit: Some(FRAMES),
+        ..PlayOptions::default()
+    };
+    play(&robot, &dataset, &options, |_, _| {}).await.unwrap();
+    let status = wait_for("all frames processed", Duration::from_secs(120), || async {
+        let status = test.client.robot("kinect").await.ok()?;
+        (status.frames.processed + status.frames.dropped + status.frames.rejected == FRAMES as u64
+            && status.frames.queued == 0)
+            .then_some(status)
+    })
+    .await;
+    assert_eq!(status.frames.dropped, 0, "the comparison needs every frame");
+    let tracking = status.tracking.expect("tracking is on by default");
+    assert_eq!(tracking.state, TrackingState::Tracking);
+    assert_eq!(tracking.frames_tracked, FRAMES as u64);
+    assert_eq!(tracking.keyframes as usize, summary.keyframes);
+    assert!(tracking.features_ms_mean.is_some());
+    let live = test.client.trajectory("kinect").await.unwrap();
+    assert_eq!(live.len(), offline.len());
+    let mut worst: f64 = 0.0;
+    for (a, b) in live.iter().zip(&offline) {
+        assert_eq!(a.map, b.map);
+        for k in 0..3 {
+            worst = worst.max(
+                (a.world_from_camera.translation_m[k] - b.world_from_camera.translation_m[k]).abs(),
+            );
+        }
+        for k in 0..4 {
+            worst = worst.max(
+                (a.world_from_camera.rotation_xyzw[k] - b.world_from_camera.rotation_xyzw[k]).abs(),
+            );
+        }
+    }
+    eprintln!(
+        "{FRAMES} frames live and offline: largest difference {worst:e}; {} keyframes",
+        summary.keyframes
+    );
+    assert!(
+        worst < 1e-9,
+        "live and offline trajectories differ by {worst}"
+    );
+    robot.close().await.unwrap();
+    test.server.stop().await.unwrap();
+}
