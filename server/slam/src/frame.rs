@@ -199,10 +199,11 @@ impl Frame {
 }
 
 #[cfg(test)]
-mod tests {
+pub(crate) mod tests {
     use super::*;
 
-    fn rig() -> Rig {
+    /// A D435-like rig for unit tests.
+    pub(crate) fn rig() -> Rig {
         Rig {
             camera: Pinhole::new(600.0, 600.0, 320.0, 240.0),
             width: 640,

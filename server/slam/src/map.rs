@@ -81,6 +81,16 @@ impl Map {
         &mut self.points[id.0 as usize]
     }
 
+    /// The map points a keyframe sees.
+    pub fn points_of(&self, keyframe: KeyFrameId) -> Vec<MapPointId> {
+        self.keyframe(keyframe)
+            .points
+            .iter()
+            .flatten()
+            .copied()
+            .collect()
+    }
+
     /// Points not culled.
     pub fn live_points(&self) -> usize {
         self.points.iter().filter(|p| !p.bad).count()
@@ -298,19 +308,8 @@ impl Atlas {
 mod tests {
     use super::*;
     use crate::frame::Keypoint;
-    use vsgraphs_sgraph::Pinhole;
 
-    fn rig() -> Rig {
-        Rig {
-            camera: Pinhole::new(600.0, 600.0, 320.0, 240.0),
-            width: 640,
-            height: 480,
-            bf: 48.0,
-            close_depth: 3.2,
-            scale_factor: 1.2,
-            levels: 8,
-        }
-    }
+    use crate::frame::tests::rig;
 
     fn frame(n: usize, rig: &Rig) -> Frame {
         let keypoints = (0..n)

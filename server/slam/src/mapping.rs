@@ -98,13 +98,7 @@ pub fn fuse_with_neighbours(map: &mut Map, rig: &Rig, keyframe: KeyFrameId) -> (
     }
     let (mut added, mut merged) = (0, 0);
     for &n in &neighbours {
-        let points: Vec<MapPointId> = map
-            .keyframe(keyframe)
-            .points
-            .iter()
-            .flatten()
-            .copied()
-            .collect();
+        let points = map.points_of(keyframe);
         let (a, m) = fuse_into(map, rig, n, &points);
         added += a;
         merged += m;
@@ -121,14 +115,7 @@ pub fn fuse_with_neighbours(map: &mut Map, rig: &Rig, keyframe: KeyFrameId) -> (
     let (a, m) = fuse_into(map, rig, keyframe, &theirs);
     added += a;
     merged += m;
-    let live: Vec<MapPointId> = map
-        .keyframe(keyframe)
-        .points
-        .iter()
-        .flatten()
-        .copied()
-        .collect();
-    for p in live {
+    for p in map.points_of(keyframe) {
         map.update_geometry(p, rig);
     }
     (added, merged)

@@ -208,19 +208,8 @@ fn consistent_rotations(angles: &[(f32, f32)]) -> Vec<bool> {
 mod tests {
     use super::*;
     use crate::frame::Keypoint;
-    use vsgraphs_sgraph::Pinhole;
 
-    fn rig() -> Rig {
-        Rig {
-            camera: Pinhole::new(600.0, 600.0, 320.0, 240.0),
-            width: 640,
-            height: 480,
-            bf: 48.0,
-            close_depth: 3.2,
-            scale_factor: 1.2,
-            levels: 8,
-        }
-    }
+    use crate::frame::tests::rig;
 
     /// Descriptor `i`: distinct pseudo-random bits.
     fn descriptor(i: u64) -> Descriptor {

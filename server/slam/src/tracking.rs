@@ -485,15 +485,7 @@ impl Tracker {
     /// Matches the reference keyframe's map points by descriptor alone (no pose needed).
     fn track_reference_keyframe(&self, frame: &Frame, rig: &Rig, start: &Se3) -> Option<Matched> {
         let map = self.map();
-        let reference = map.keyframe(self.reference?);
-        let mut query: Vec<(Descriptor, f32)> = Vec::new();
-        let mut points = Vec::new();
-        for (i, p) in reference.points.iter().enumerate() {
-            if let Some(p) = p.filter(|p| !map.point(*p).bad) {
-                query.push((map.point(p).descriptor, reference.frame.keypoints[i].angle));
-                points.push(p);
-            }
-        }
+        let (query, points) = descriptor_query(map, self.reference?);
         let matches = matcher::match_descriptors(&query, frame, 0.7, true);
         if matches.len() < 15 {
             return None;
@@ -716,15 +708,7 @@ impl Tracker {
 
     fn relocalise_against(&self, frame: &Frame, rig: &Rig, k: KeyFrameId) -> Option<Matched> {
         let map = self.map();
-        let keyframe = map.keyframe(k);
-        let mut query = Vec::new();
-        let mut points = Vec::new();
-        for (i, p) in keyframe.points.iter().enumerate() {
-            if let Some(p) = p.filter(|p| !map.point(*p).bad) {
-                query.push((map.point(p).descriptor, keyframe.frame.keypoints[i].angle));
-                points.push(p);
-            }
-        }
+        let (query, points) = descriptor_query(map, k);
         let matches = matcher::match_descriptors(&query, frame, 0.75, true);
         if matches.len() < 15 {
             return None;
@@ -858,6 +842,24 @@ struct Tracked {
     points: Vec<Option<MapPointId>>,
     inliers: usize,
     reference: Option<KeyFrameId>,
+}
+
+/// A keyframe's map points as a brute-force matching query: each point's descriptor with the
+/// angle of the keypoint that sees it (for the orientation check), and the points.
+fn descriptor_query(map: &Map, k: KeyFrameId) -> (Vec<(Descriptor, f32)>, Vec<MapPointId>) {
+    let keyframe = map.keyframe(k);
+    keyframe
+        .points
+        .iter()
+        .enumerate()
+        .filter_map(|(i, p)| p.filter(|p| !map.point(*p).bad).map(|p| (i, p)))
+        .map(|(i, p)| {
+            (
+                (map.point(p).descriptor, keyframe.frame.keypoints[i].angle),
+                p,
+            )
+        })
+        .unzip()
 }
 
 /// The pose observation of keypoint `i` of `frame` seeing `point`.
