@@ -341,23 +341,17 @@ fn track(
         return summary(tracker, TrackingState::UnsupportedCamera, None, None);
     }
     let pinhole = vsgraphs_slam::Pinhole::new(camera.fx, camera.fy, camera.cx, camera.cy);
-    match tracker.track(timestamp_ns, &pinhole, grey, depth) {
-        Ok(result) => {
-            let state = match result.state {
-                vsgraphs_slam::TrackingState::Initialising => TrackingState::Initialising,
-                vsgraphs_slam::TrackingState::Tracking => TrackingState::Tracking,
-                vsgraphs_slam::TrackingState::Lost => TrackingState::Lost,
-            };
-            summary(tracker, state, Some(result), None)
-        }
-        Err(e) => {
-            let state = match tracker.state() {
-                vsgraphs_slam::TrackingState::Initialising => TrackingState::Initialising,
-                _ => TrackingState::Lost,
-            };
-            summary(tracker, state, None, Some(e.to_string()))
-        }
-    }
+    // On an error the frame has no pose (it counts as untracked); the state is the tracker's.
+    let (result, error) = match tracker.track(timestamp_ns, &pinhole, grey, depth) {
+        Ok(result) => (Some(result), None),
+        Err(e) => (None, Some(e.to_string())),
+    };
+    let state = match tracker.state() {
+        vsgraphs_slam::TrackingState::Initialising => TrackingState::Initialising,
+        vsgraphs_slam::TrackingState::Tracking => TrackingState::Tracking,
+        vsgraphs_slam::TrackingState::Lost => TrackingState::Lost,
+    };
+    summary(tracker, state, result, error)
 }
 
 fn decode_rejection(error: DecodeError, fallback: Reason, sequence: Option<u64>) -> Rejection {
