@@ -1,6 +1,11 @@
-// The vsgraphs page: polls the REST API and draws the selected robot's latest detections.
+// The vsgraphs page: polls the REST API and draws the selected robot's latest detections and
+// a top view of its map.
 const POLL_MS = 500;
+// Maps change per keyframe and carry thousands of points: fetched less often.
+const MAP_POLL_MS = 2000;
 let selected = null;
+let mapFetched = 0;
+let lastMap = null;
 
 const $ = (id) => document.getElementById(id);
 const fmt = (v, digits = 1) => (v === null || v === undefined ? "–" : v.toFixed(digits));
@@ -40,6 +45,9 @@ function renderRobots(robots) {
     const seen = Object.entries(robot.markers_detected || {});
     cell(row, seen.length);
     row.cells[row.cells.length - 1].title = seen.map(([id, n]) => `${id}: ${n} frames`).join("\n");
+    const t = robot.tracking;
+    cell(row, t ? `${t.state} · ${t.keyframes} kf · ${t.markers} mk` : "–", t ? `track-${t.state}` : "");
+    if (t && t.last_event) row.cells[row.cells.length - 1].title = t.last_event;
   }
   const current = robots.find((r) => r.robot_id === selected);
   const rejection = current && current.last_rejection;
@@ -90,11 +98,99 @@ function drawDetections(frame) {
   $("selected").textContent = `${frame.robot_id} · frame ${frame.sequence} · ${frame.markers.length} markers`;
 }
 
+// Top view: map x to the right and z (forward from the first keyframe) up, fitted to the canvas.
+function drawMap(view, robot) {
+  const canvas = $("top");
+  const ctx = canvas.getContext("2d");
+  ctx.clearRect(0, 0, canvas.width, canvas.height);
+  if (!view) return;
+  const pose = robot && robot.tracking && robot.tracking.world_from_camera;
+  const xs = [], zs = [];
+  const add = ([x, , z]) => { xs.push(x); zs.push(z); };
+  view.keyframes.forEach((k) => add(k.world_from_camera.translation_m));
+  view.markers.forEach((m) => add(m.world_from_marker.translation_m));
+  if (pose) add(pose.translation_m);
+  if (!xs.length) return;
+  const pad = 1.0;
+  const [x0, x1] = [Math.min(...xs) - pad, Math.max(...xs) + pad];
+  const [z0, z1] = [Math.min(...zs) - pad, Math.max(...zs) + pad];
+  const scale = Math.min(canvas.width / (x1 - x0), canvas.height / (z1 - z0));
+  const u = (x) => (x - x0) * scale + (canvas.width - (x1 - x0) * scale) / 2;
+  const v = (z) => canvas.height - ((z - z0) * scale + (canvas.height - (z1 - z0) * scale) / 2);
+  ctx.fillStyle = "rgba(200, 205, 215, 0.6)";
+  for (const [x, , z] of view.points) ctx.fillRect(u(x), v(z), 1.5, 1.5);
+  ctx.strokeStyle = "#2f6fde";
+  ctx.lineWidth = 1.5;
+  ctx.beginPath();
+  view.keyframes.forEach((k, i) => {
+    const [x, , z] = k.world_from_camera.translation_m;
+    if (i === 0) ctx.moveTo(u(x), v(z)); else ctx.lineTo(u(x), v(z));
+  });
+  ctx.stroke();
+  ctx.fillStyle = "#2f6fde";
+  for (const k of view.keyframes) {
+    const [x, , z] = k.world_from_camera.translation_m;
+    ctx.fillRect(u(x) - 1.5, v(z) - 1.5, 3, 3);
+  }
+  ctx.font = "12px system-ui, sans-serif";
+  for (const m of view.markers) {
+    const [x, , z] = m.world_from_marker.translation_m;
+    ctx.fillStyle = "#f29b30";
+    ctx.fillRect(u(x) - 4, v(z) - 4, 8, 8);
+    ctx.fillStyle = "#ffffff";
+    ctx.fillText(String(m.id), u(x) + 6, v(z) - 6);
+  }
+  if (pose) {
+    const [x, , z] = pose.translation_m;
+    const [qx, qy, qz, qw] = pose.rotation_xyzw;
+    // The camera's forward axis (its z) in the map, projected on x–z.
+    const fx = 2 * (qx * qz + qw * qy), fz = 1 - 2 * (qx * qx + qy * qy);
+    const angle = Math.atan2(-fz, fx);
+    ctx.save();
+    ctx.translate(u(x), v(z));
+    ctx.rotate(angle);
+    ctx.fillStyle = "#e5484d";
+    ctx.beginPath();
+    ctx.moveTo(10, 0);
+    ctx.lineTo(-6, 6);
+    ctx.lineTo(-6, -6);
+    ctx.closePath();
+    ctx.fill();
+    ctx.restore();
+  }
+  $("map-title").textContent =
+    `${selected} · map ${view.map} · ${view.keyframe_count} keyframes · ${view.point_count} points · ${view.marker_count} markers`;
+}
+
+async function refreshMap(robots) {
+  const robot = robots.find((r) => r.robot_id === selected);
+  if (!robot || !robot.tracking) {
+    $("map-title").textContent = robot ? "· not tracked" : "";
+    lastMap = null;
+    drawMap(null, robot);
+    return;
+  }
+  const id = encodeURIComponent(selected);
+  if (Date.now() - mapFetched > MAP_POLL_MS || !lastMap || lastMap.robot !== selected) {
+    mapFetched = Date.now();
+    try {
+      const view = await getJson(`/api/v1/robots/${id}/maps/${robot.tracking.map}?max_points=4000`);
+      lastMap = { robot: selected, view };
+    } catch (error) {
+      $("map-title").textContent = `· ${error.message}`;
+      return;
+    }
+  }
+  drawMap(lastMap.view, robot);
+}
+
 async function refresh() {
   try {
     const health = await getJson("/api/v1/health");
     $("health").textContent = `server ${health.version} · up ${Math.round(health.uptime_s)} s`;
-    renderRobots(await getJson("/api/v1/robots"));
+    const robots = await getJson("/api/v1/robots");
+    renderRobots(robots);
+    await refreshMap(robots);
     if (selected) {
       try {
         drawDetections(await getJson(`/api/v1/robots/${encodeURIComponent(selected)}/detections`));

@@ -43,7 +43,17 @@ pub fn run(
         Trajectory::read_tum(reference)?,
         Trajectory::read_tum(estimate)?,
     );
-    let matched = match_and_align(&gt, &est, options)?;
+    score(&gt, &est, metric, options)
+}
+
+/// Scores trajectories already in memory.
+pub fn score(
+    gt: &Trajectory,
+    est: &Trajectory,
+    metric: Metric,
+    options: &Compare,
+) -> anyhow::Result<Report> {
+    let matched = match_and_align(gt, est, options)?;
     let score = match metric {
         Metric::Ape => ape(&matched, options.relation),
         Metric::Rpe { delta, all_pairs } => rpe(&matched, options.relation, delta, all_pairs)?,

@@ -74,8 +74,14 @@ pub struct Timing {
     pub latency_ms_last: Option<f64>,
     pub latency_ms_mean: Option<f64>,
     pub latency_ms_max: Option<f64>,
-    /// Server-side processing time per frame (decode, validate, detect), in ms.
+    /// Server-side processing time per frame (decode, validate, detect, track), in ms.
     pub processing_ms_mean: Option<f64>,
+    /// Its stages, ms: decoding (protobuf, colour and depth images), and marker detection with
+    /// pose estimation. Tracking's stages are in `TrackingStatus`.
+    #[serde(default)]
+    pub decode_ms_mean: Option<f64>,
+    #[serde(default)]
+    pub detection_ms_mean: Option<f64>,
 }
 
 /// `GET /api/v1/robots` (a list of these) and `GET /api/v1/robots/{robot_id}`.
@@ -139,6 +145,11 @@ pub struct TrackingStatus {
     pub map_points: u64,
     /// Map points the latest pose explains.
     pub inliers: u64,
+    /// Marker landmarks in the active map, and how many of them the latest frame saw.
+    #[serde(default)]
+    pub markers: u64,
+    #[serde(default)]
+    pub markers_in_view: u64,
     /// Frames given a pose, and frames that could not be (lost or before a map existed).
     pub frames_tracked: u64,
     pub frames_untracked: u64,
@@ -149,6 +160,51 @@ pub struct TrackingStatus {
     pub features_ms_mean: Option<f64>,
     pub tracking_ms_mean: Option<f64>,
     pub mapping_ms_mean: Option<f64>,
+}
+
+/// A keyframe of a map, in `GET /api/v1/robots/{robot_id}/maps/{map}`.
+#[derive(Debug, Clone, Copy, Serialize, Deserialize, PartialEq)]
+#[cfg_attr(feature = "openapi", derive(ToSchema))]
+pub struct MapKeyframe {
+    pub id: u32,
+    pub timestamp_ns: u64,
+    pub world_from_camera: Pose,
+}
+
+/// A marker landmark of a map.
+#[derive(Debug, Clone, Copy, Serialize, Deserialize, PartialEq)]
+#[cfg_attr(feature = "openapi", derive(ToSchema))]
+pub struct MapMarker {
+    pub id: i32,
+    pub side_m: f64,
+    pub world_from_marker: Pose,
+    /// Keyframes that saw it.
+    pub observations: u32,
+}
+
+/// One map of a robot's Atlas as of its latest keyframe. `GET /api/v1/robots/{robot_id}/maps`
+/// lists them with only the counts; `.../maps/{map}` gives one whole.
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+#[cfg_attr(feature = "openapi", derive(ToSchema))]
+pub struct MapView {
+    /// Index of the map in the robot's Atlas.
+    pub map: u32,
+    /// The stamp of the frame that last changed it (ns).
+    pub updated_ns: u64,
+    /// Counts in the map (points not culled).
+    pub keyframe_count: u64,
+    pub point_count: u64,
+    pub marker_count: u64,
+    /// Every keyframe (empty in the list).
+    #[serde(default)]
+    pub keyframes: Vec<MapKeyframe>,
+    /// Map point positions, decimated evenly to at most the requested number, metres (empty in
+    /// the list).
+    #[serde(default)]
+    pub points: Vec<[f32; 3]>,
+    /// Every marker landmark (empty in the list).
+    #[serde(default)]
+    pub markers: Vec<MapMarker>,
 }
 
 /// One pose of `GET /api/v1/robots/{robot_id}/trajectory`.

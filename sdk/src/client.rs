@@ -2,7 +2,10 @@
 
 use serde::de::DeserializeOwned;
 use thiserror::Error;
-use vsgraphs_proto::api::{ApiError, FrameDetections, Health, RobotStatus, TrajectoryPose};
+use vsgraphs_proto::api::{
+    ApiError, FrameDetections, Health, MapView, RobotStatus, TrajectoryPose,
+};
+use vsgraphs_proto::model::BuildingModel;
 
 #[derive(Debug, Error)]
 pub enum ClientError {
@@ -59,6 +62,30 @@ impl Client {
     /// Every pose tracking gave the robot, oldest first, in every map of its Atlas.
     pub async fn trajectory(&self, robot_id: &str) -> Result<Vec<TrajectoryPose>, ClientError> {
         self.get(&format!("/api/v1/robots/{robot_id}/trajectory"))
+            .await
+    }
+
+    /// The maps of the robot's Atlas, counts only.
+    pub async fn maps(&self, robot_id: &str) -> Result<Vec<MapView>, ClientError> {
+        self.get(&format!("/api/v1/robots/{robot_id}/maps")).await
+    }
+
+    /// One map whole: keyframes, at most `max_points` map points, marker landmarks.
+    pub async fn map(
+        &self,
+        robot_id: &str,
+        map: u32,
+        max_points: usize,
+    ) -> Result<MapView, ClientError> {
+        self.get(&format!(
+            "/api/v1/robots/{robot_id}/maps/{map}?max_points={max_points}"
+        ))
+        .await
+    }
+
+    /// One map as a building model (what `vsgraphs-eval semantics` scores).
+    pub async fn model(&self, robot_id: &str, map: u32) -> Result<BuildingModel, ClientError> {
+        self.get(&format!("/api/v1/robots/{robot_id}/maps/{map}/model"))
             .await
     }
 

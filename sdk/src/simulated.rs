@@ -16,7 +16,7 @@ use tokio::sync::mpsc;
 use vsgraphs_proto::{CameraModel, ColourImage, DepthEncoding, DepthImage, PixelFormat};
 use vsgraphs_sim::sequence::render_frame;
 use vsgraphs_sim::walk::Walk;
-use vsgraphs_sim::Renderer;
+use vsgraphs_sim::{Frame as SimFrame, Renderer};
 
 /// Depth units per metre on the wire (millimetres).
 pub const DEPTH_SCALE: f64 = 1000.0;
@@ -90,6 +90,28 @@ pub fn camera_model(renderer: &Renderer) -> CameraModel {
     }
 }
 
+/// A rendered frame as a robot sends it: JPEG colour, depth in [`DEPTH_SCALE`] units.
+pub fn encode_frame(
+    frame: &SimFrame,
+    jpeg_quality: u8,
+    depth_codec: DepthEncoding,
+) -> Result<(ColourImage, DepthImage), EncodeError> {
+    let colour = encode::colour_jpeg(
+        &frame.rgb,
+        frame.width,
+        frame.height,
+        PixelFormat::Rgb8,
+        jpeg_quality,
+    )?;
+    let depth = encode::depth(
+        &frame.depth_units(DEPTH_SCALE),
+        frame.width,
+        frame.height,
+        depth_codec,
+    )?;
+    Ok((colour, depth))
+}
+
 struct Encoded {
     /// Frame number over all laps, and the walk's time of the frame over all laps.
     sent: u64,
@@ -133,29 +155,15 @@ pub async fn stream(
                     let started = Instant::now();
                     let frame = render_frame(&renderer, &walk, index);
                     let rendered = Instant::now();
-                    let encoded = encode::colour_jpeg(
-                        &frame.rgb,
-                        frame.width,
-                        frame.height,
-                        PixelFormat::Rgb8,
-                        options.jpeg_quality,
-                    )
-                    .and_then(|colour| {
-                        let depth = encode::depth(
-                            &frame.depth_units(DEPTH_SCALE),
-                            frame.width,
-                            frame.height,
-                            options.depth_codec,
-                        )?;
-                        Ok(Encoded {
+                    let encoded = encode_frame(&frame, options.jpeg_quality, options.depth_codec)
+                        .map(|(colour, depth)| Encoded {
                             sent,
                             time_s,
                             colour,
                             depth,
                             render: rendered - started,
                             encode: rendered.elapsed(),
-                        })
-                    });
+                        });
                     let failed = encoded.is_err();
                     if sender.blocking_send(encoded).is_err() || failed {
                         return;

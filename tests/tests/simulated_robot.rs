@@ -78,8 +78,24 @@ async fn a_simulated_robot_streams_seq06_and_the_server_reports_its_frames_and_m
         expected.is_subset(&detected),
         "in view {expected:?}, detected {detected:?}"
     );
+    // The markers seen near enough became landmarks of the robot's map, and the API serves
+    // the map (decimated points, keyframes, markers) and its building model.
+    let maps = test.client.maps("sim-1").await.unwrap();
+    assert_eq!(maps.len(), 1, "{maps:?}");
+    assert!(maps[0].points.is_empty() && maps[0].keyframes.is_empty());
+    let map = test.client.map("sim-1", 0, 500).await.unwrap();
+    assert!(map.points.len() <= 500 && !map.points.is_empty());
+    assert_eq!(map.keyframes.len() as u64, map.keyframe_count);
+    let mapped: BTreeSet<u32> = map.markers.iter().map(|m| m.id as u32).collect();
+    assert!(
+        !mapped.is_empty() && mapped.is_subset(&detected),
+        "mapped {mapped:?}"
+    );
+    let model = test.client.model("sim-1", 0).await.unwrap();
+    assert_eq!(model.markers.len(), map.markers.len());
+    assert_eq!(tracking.markers, map.marker_count);
     eprintln!(
-        "{frames} frames; markers in view {expected:?}; detected (id: frames) {:?}",
+        "{frames} frames; markers in view {expected:?}; detected (id: frames) {:?}; mapped {mapped:?}",
         status.markers_detected
     );
     robot.close().await.unwrap();

@@ -7,10 +7,10 @@ use opencv::prelude::*;
 use std::time::Instant;
 use vsgraphs_eval::metrics::{ape, match_and_align, Compare, Relation};
 use vsgraphs_eval::trajectory::Trajectory;
+use vsgraphs_eval_cli::scenario::{self, ScenarioOptions, ScenarioRun};
+use vsgraphs_server::config::Config;
 use vsgraphs_sgraph::{Pinhole, Se3};
 use vsgraphs_sim::scenarios::Scenario;
-use vsgraphs_sim::sequence::render_frame;
-use vsgraphs_sim::{Building, Renderer};
 use vsgraphs_slam::{Tracker, TrackerConfig, TrackingState};
 use vsgraphs_tests::*;
 use vsgraphs_vision::depth::DepthImage;
@@ -41,7 +41,13 @@ fn run(frames: impl Iterator<Item = (f64, Mat, DepthImage)>, camera: Pinhole) ->
     for (stamp, grey, depth) in frames {
         let started = Instant::now();
         let result = tracker
-            .track((stamp * 1e9).round() as u64, &camera, &grey, &depth)
+            .track(
+                (stamp * 1e9).round() as u64,
+                &camera,
+                &grey,
+                &depth,
+                Vec::new(),
+            )
             .unwrap();
         times.push(started.elapsed().as_secs_f64() * 1e3);
         if let Some(event) = &result.event {
@@ -122,48 +128,56 @@ fn seven_scenes_frames_are_all_tracked_accurately() {
     assert!(error < 0.035, "ATE {error}");
 }
 
-/// Tracks the first `frames` frames of a scenario's first robot.
-fn simulated(name: &str, frames: usize) -> (f64, Run, f64) {
+/// Runs a scenario's first robot through the server's pipeline (markers included), as
+/// `vsgraphs-eval scenario` does.
+fn simulated(name: &str) -> ScenarioRun {
     let scenario = Scenario::builtin(name).unwrap();
-    let building = Building::from_plan(&scenario.plan).unwrap();
-    let renderer = Renderer::new(&scenario.plan, &building, scenario.render.clone(), 7);
-    let walk = scenario.walks().unwrap().remove(0);
-    let c = &scenario.render.camera;
-    let camera = Pinhole::new(c.fx, c.fy, c.cx, c.cy);
-    let count = frames.min(walk.times.len());
-    let mut reference = Trajectory::default();
-    for i in 0..count {
-        reference.push(walk.times[i], walk.world_from_camera[i]);
+    let run = scenario::run(
+        &Config::default(),
+        &scenario,
+        &ScenarioOptions::default(),
+        |_, _| {},
+    )
+    .unwrap();
+    for (t, event) in &run.events {
+        eprintln!("  t={t:.3}: {event}");
     }
-    let (width, height) = (c.width, c.height);
-    let load = |i: usize| {
-        let frame = render_frame(&renderer, &walk, i);
-        let grey = Mat::new_rows_cols_with_data(height as i32, width as i32, &frame.grey())
-            .unwrap()
-            .try_clone()
-            .unwrap();
-        let depth = DepthImage {
-            width,
-            height,
-            data: frame.depth_units(1000.0),
-            depth_scale: 1000.0,
-        };
-        (walk.times[i], grey, depth)
-    };
-    let result = run((0..count).map(load), camera);
-    let error = ate(&reference, &result.estimate);
-    (error, result, reference.path_length())
+    run
 }
 
 #[test]
-fn simulated_seq06_is_tracked_all_the_way() {
-    let (error, result, length) = simulated("seq06", usize::MAX);
+fn simulated_seq06_is_tracked_all_the_way_with_its_markers_mapped() {
+    let run = simulated("seq06");
+    let ate = run.ate.as_ref().unwrap();
+    let semantics = run.semantics.as_ref().expect("the map's markers align it");
     eprintln!(
-        "seq06: ATE RMSE {error:.4} m over {length:.1} m, {} lost, {} keyframes, median {:.1} ms/frame",
-        result.lost_frames, result.keyframes, result.median_ms
+        "seq06: ATE RMSE {:.4} m over {:.1} m, {} of {} tracked, {} keyframes, {} markers mapped \
+         ({} aligned, RMSE {:.4} m), median features + tracking {:.1} ms",
+        ate.stats.rmse,
+        ate.reference_path_length,
+        run.tracked,
+        run.frames,
+        run.keyframes,
+        run.markers,
+        semantics.aligned_markers,
+        semantics.marker_rmse_m.unwrap_or(f64::NAN),
+        run.median_ms.features + run.median_ms.tracking
     );
-    assert_eq!(result.lost_frames, 0);
-    assert_eq!(result.maps, 1);
-    // Measured 0.043 m (0.1 % of the path). The issue's goal is 0.02 m; not met yet.
-    assert!(error < 0.06, "ATE {error}");
+    assert_eq!(run.untracked, 0);
+    assert_eq!(run.maps, 1);
+    // Every marker of the building is on the walk's way and gets mapped, where the building
+    // has it (the semantic scorer aligns the map to the building by them).
+    let truth = vsgraphs_sim::Building::from_plan(&Scenario::builtin("seq06").unwrap().plan)
+        .unwrap()
+        .markers
+        .len();
+    assert_eq!(semantics.aligned_markers, truth);
+    // Measured 0.07–0.10 m after aligning the map to the building by them: each is refined
+    // only by the keyframes around it, so revisits leave it between old and new sightings.
+    // A marker mapped from a wrong detector pose is off by 0.3 m or more (seen before the
+    // oblique-view gate).
+    assert!(semantics.marker_rmse_m.unwrap() < 0.15, "{semantics:?}");
+    // Measured 0.038 m (seeds 2, 3: 0.041, 0.031 m; without markers 0.032, 0.045, 0.027 m). The
+    // issue's goal is 0.02 m; not met yet.
+    assert!(ate.stats.rmse < 0.05, "ATE {}", ate.stats.rmse);
 }

@@ -11,8 +11,9 @@ use axum::{Json, Router};
 use std::sync::Arc;
 use utoipa::OpenApi;
 use vsgraphs_proto::api::{
-    ApiError, DistanceSource, FrameCounters, FrameDetections, Health, MarkerDetection, MarkerPose,
-    Pose, Presence, Rejection, RobotStatus, Timing, TrackingState, TrackingStatus, TrajectoryPose,
+    ApiError, DistanceSource, FrameCounters, FrameDetections, Health, MapKeyframe, MapMarker,
+    MapView, MarkerDetection, MarkerPose, Pose, Presence, Rejection, RobotStatus, Timing,
+    TrackingState, TrackingStatus, TrajectoryPose,
 };
 
 /// An error answer: a status code and a JSON [`ApiError`] body.
@@ -49,7 +50,16 @@ impl IntoResponse for Failure {
         title = "vsgraphs",
         description = "Robots, their frames and their marker detections."
     ),
-    paths(health, list_robots, get_robot, get_detections, get_trajectory),
+    paths(
+        health,
+        list_robots,
+        get_robot,
+        get_detections,
+        get_trajectory,
+        list_maps,
+        get_map,
+        get_map_model
+    ),
     components(schemas(
         Health,
         RobotStatus,
@@ -65,6 +75,9 @@ impl IntoResponse for Failure {
         TrackingState,
         Pose,
         TrajectoryPose,
+        MapView,
+        MapKeyframe,
+        MapMarker,
         ApiError
     ))
 )]
@@ -85,6 +98,12 @@ pub fn router(registry: Arc<Registry>) -> Router {
         .route("/api/v1/robots/{robot_id}", get(get_robot))
         .route("/api/v1/robots/{robot_id}/detections", get(get_detections))
         .route("/api/v1/robots/{robot_id}/trajectory", get(get_trajectory))
+        .route("/api/v1/robots/{robot_id}/maps", get(list_maps))
+        .route("/api/v1/robots/{robot_id}/maps/{map}", get(get_map))
+        .route(
+            "/api/v1/robots/{robot_id}/maps/{map}/model",
+            get(get_map_model),
+        )
         .route(
             "/api/v1/openapi.json",
             get(|| async { ([("content-type", "application/json")], openapi_json()) }),
@@ -217,6 +236,103 @@ async fn get_trajectory(
             .into_response());
     }
     Ok(Json(poses).into_response())
+}
+
+/// The maps of the robot's Atlas, counts only, as of each one's latest keyframe.
+#[utoipa::path(
+    get,
+    path = "/api/v1/robots/{robot_id}/maps",
+    params(("robot_id" = String, Path, description = "The robot's id")),
+    responses((status = 200, body = [MapView]), (status = 404, body = ApiError))
+)]
+async fn list_maps(
+    State(registry): State<Arc<Registry>>,
+    Path(robot_id): Path<String>,
+) -> Result<Json<Vec<MapView>>, Failure> {
+    let robot = registry
+        .get(&robot_id)
+        .ok_or_else(|| unknown_robot(&robot_id))?;
+    let maps = robot
+        .maps()
+        .iter()
+        .map(|view| MapView {
+            keyframes: Vec::new(),
+            points: Vec::new(),
+            markers: Vec::new(),
+            ..(**view).clone()
+        })
+        .collect();
+    Ok(Json(maps))
+}
+
+/// Query of `GET /api/v1/robots/{robot_id}/maps/{map}`.
+#[derive(Debug, serde::Deserialize, utoipa::IntoParams)]
+struct MapQuery {
+    /// Points to return at most, evenly decimated (default 5000).
+    max_points: Option<usize>,
+}
+
+/// Map size of one page of the API: enough for a top view, small enough to poll.
+const DEFAULT_MAP_POINTS: usize = 5_000;
+
+fn find_map(registry: &Registry, robot_id: &str, map: u32) -> Result<Arc<MapView>, Failure> {
+    let robot = registry
+        .get(robot_id)
+        .ok_or_else(|| unknown_robot(robot_id))?;
+    robot
+        .maps()
+        .into_iter()
+        .find(|v| v.map == map)
+        .ok_or_else(|| {
+            Failure::not_found(
+                "map_not_found",
+                format!("robot {robot_id:?} has no map {map}"),
+            )
+        })
+}
+
+/// One map of the robot's Atlas: keyframes, map points (decimated) and marker landmarks.
+#[utoipa::path(
+    get,
+    path = "/api/v1/robots/{robot_id}/maps/{map}",
+    params(
+        ("robot_id" = String, Path, description = "The robot's id"),
+        ("map" = u32, Path, description = "Index of the map in the robot's Atlas"),
+        MapQuery
+    ),
+    responses((status = 200, body = MapView), (status = 404, body = ApiError))
+)]
+async fn get_map(
+    State(registry): State<Arc<Registry>>,
+    Path((robot_id, map)): Path<(String, u32)>,
+    Query(query): Query<MapQuery>,
+) -> Result<Json<MapView>, Failure> {
+    let view = find_map(&registry, &robot_id, map)?;
+    let mut view = (*view).clone();
+    let at_most = query.max_points.unwrap_or(DEFAULT_MAP_POINTS);
+    view.points = crate::model::decimate(view.points, at_most);
+    Ok(Json(view))
+}
+
+/// One map as a building model (the JSON `vsgraphs-eval semantics` scores): its markers so far.
+#[utoipa::path(
+    get,
+    path = "/api/v1/robots/{robot_id}/maps/{map}/model",
+    params(
+        ("robot_id" = String, Path, description = "The robot's id"),
+        ("map" = u32, Path, description = "Index of the map in the robot's Atlas")
+    ),
+    responses(
+        (status = 200, description = "A building model (see proto::model)"),
+        (status = 404, body = ApiError)
+    )
+)]
+async fn get_map_model(
+    State(registry): State<Arc<Registry>>,
+    Path((robot_id, map)): Path<(String, u32)>,
+) -> Result<Json<vsgraphs_proto::model::BuildingModel>, Failure> {
+    let view = find_map(&registry, &robot_id, map)?;
+    Ok(Json(crate::model::building_model(&view)))
 }
 
 fn unknown_robot(robot_id: &str) -> Failure {

@@ -111,6 +111,7 @@ pub struct TrackingConfig {
     pub keyframe_ratio: f64,
     pub local_ba_iterations: usize,
     pub new_map_after_s: f64,
+    pub marker_landmarks: bool,
 }
 
 impl Default for TrackingConfig {
@@ -123,6 +124,7 @@ impl Default for TrackingConfig {
             keyframe_ratio: slam.keyframe_ratio,
             local_ba_iterations: slam.local_ba_iterations,
             new_map_after_s: slam.new_map_after_s,
+            marker_landmarks: slam.marker_landmarks,
         }
     }
 }
@@ -136,6 +138,7 @@ impl TrackingConfig {
         config.keyframe_ratio = self.keyframe_ratio;
         config.local_ba_iterations = self.local_ba_iterations;
         config.new_map_after_s = self.new_map_after_s;
+        config.marker_landmarks = self.marker_landmarks;
         config
     }
 }

@@ -9,6 +9,7 @@ pub mod api;
 pub mod config;
 pub mod detect;
 pub mod ingest;
+pub mod model;
 pub mod offline;
 pub mod pipeline;
 pub mod robots;

@@ -72,6 +72,10 @@ enum Command {
         /// TUM trajectory file to write (poses of the map the run ends in).
         #[arg(long)]
         trajectory: Option<PathBuf>,
+        /// Building model JSON to write (the map the run ends in; `vsgraphs-eval semantics`
+        /// scores it).
+        #[arg(long)]
+        model: Option<PathBuf>,
         /// Stop after this many frames.
         #[arg(long)]
         limit: Option<usize>,
@@ -149,12 +153,14 @@ fn print_offline(s: &vsgraphs_server::offline::OfflineSummary) {
         println!("  t={t:.3} s: {event}");
     }
     println!(
-        "maps {}, keyframes {}, map points {}",
-        s.maps, s.keyframes, s.map_points
+        "maps {}, keyframes {}, map points {}, markers {}",
+        s.maps, s.keyframes, s.map_points, s.markers
     );
     println!(
-        "median ms per frame: pipeline {:.2} (features {:.2}, tracking {:.2}, mapping {:.2}); mapping mean {:.2}",
+        "median ms per frame: pipeline {:.2} (decode {:.2}, markers {:.2}, features {:.2}, tracking {:.2}, mapping {:.2}); mapping mean {:.2}",
         median(&s.pipeline_ms),
+        median(&s.decode_ms),
+        median(&s.detection_ms),
         median(&s.features_ms),
         median(&s.tracking_ms),
         median(&s.mapping_ms),
@@ -205,6 +211,7 @@ async fn main() -> anyhow::Result<()> {
         Command::Offline {
             dataset,
             trajectory,
+            model,
             limit,
         } => {
             let dataset = vsgraphs_sdk::dataset::open(&dataset)?;
@@ -229,6 +236,22 @@ async fn main() -> anyhow::Result<()> {
                     "trajectory: {} poses of map {} in {}",
                     kept.len(),
                     map.unwrap_or(0),
+                    path.display()
+                );
+            }
+            if let Some(path) = model {
+                let view = summary
+                    .map_views
+                    .last()
+                    .context("no map was started, so there is no model to write")?;
+                let json =
+                    serde_json::to_string_pretty(&vsgraphs_server::model::building_model(view))?;
+                std::fs::write(&path, json)
+                    .with_context(|| format!("writing {}", path.display()))?;
+                println!(
+                    "model: {} markers of map {} in {}",
+                    view.markers.len(),
+                    view.map,
                     path.display()
                 );
             }

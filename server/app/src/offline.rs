@@ -7,8 +7,8 @@ use crate::pipeline::{FrameHeader, FrameProcessor};
 use std::path::Path;
 use std::time::{Duration, Instant};
 use vsgraphs_eval::trajectory::Trajectory;
-use vsgraphs_proto::api::{TrackingState, TrajectoryPose};
-use vsgraphs_proto::{DepthEncoding, Message, RgbdFrame};
+use vsgraphs_proto::api::{MapView, TrackingState, TrajectoryPose};
+use vsgraphs_proto::{CameraModel, ColourImage, DepthEncoding, DepthImage, Message, RgbdFrame};
 use vsgraphs_sdk::dataset::Dataset;
 use vsgraphs_sdk::player::load_frame;
 
@@ -26,10 +26,16 @@ pub struct OfflineSummary {
     pub maps: usize,
     pub keyframes: usize,
     pub map_points: usize,
+    pub markers: usize,
+    /// Every map of the Atlas at the end of the run.
+    pub map_views: Vec<MapView>,
     /// Tracking events (map started, lost, relocalised) with the frame's stamp in seconds.
     pub events: Vec<(f64, String)>,
-    /// Per-frame times, ms: whole pipeline, ORB features, tracking, local mapping.
+    /// Per-frame times, ms: whole pipeline, decoding, marker detection, ORB features, tracking,
+    /// local mapping.
     pub pipeline_ms: Vec<f64>,
+    pub decode_ms: Vec<f64>,
+    pub detection_ms: Vec<f64>,
     pub features_ms: Vec<f64>,
     pub tracking_ms: Vec<f64>,
     pub mapping_ms: Vec<f64>,
@@ -47,12 +53,51 @@ pub fn median(values: &[f64]) -> f64 {
     }
 }
 
+/// One frame as a robot would send it, with its source's stamp.
+pub struct OfflineFrame {
+    pub timestamp_ns: u64,
+    pub colour: ColourImage,
+    pub depth: DepthImage,
+}
+
 /// Runs `dataset` through the pipeline; `progress(done, total)` is called after every frame.
 /// Returns the summary and every tracked pose.
 pub fn run(
     config: &Config,
     dataset: &Dataset,
     limit: Option<usize>,
+    progress: impl FnMut(usize, usize),
+) -> anyhow::Result<(OfflineSummary, Vec<TrajectoryPose>)> {
+    let total = limit.map_or(dataset.frames.len(), |l| l.min(dataset.frames.len()));
+    let frames = dataset.frames.iter().take(total).map(|files| {
+        load_frame(files, DepthEncoding::Rvl).map(|(colour, depth, _)| OfflineFrame {
+            timestamp_ns: files.timestamp_ns,
+            colour,
+            depth,
+        })
+    });
+    let source = FrameSource {
+        camera: &dataset.camera,
+        depth_scale: dataset.depth_scale,
+        total,
+    };
+    run_frames(config, source, frames, progress)
+}
+
+/// What every frame of a run shares.
+pub struct FrameSource<'a> {
+    pub camera: &'a CameraModel,
+    pub depth_scale: f64,
+    /// Frames expected (for progress).
+    pub total: usize,
+}
+
+/// Runs encoded frames (or the reasons they could not be read) through the pipeline, in order.
+/// Poses carry the frames' own stamps.
+pub fn run_frames(
+    config: &Config,
+    source: FrameSource<'_>,
+    frames: impl Iterator<Item = Result<OfflineFrame, String>>,
     mut progress: impl FnMut(usize, usize),
 ) -> anyhow::Result<(OfflineSummary, Vec<TrajectoryPose>)> {
     let mut processor = FrameProcessor::new(
@@ -61,29 +106,35 @@ pub fn run(
         config.ingest.max_frame_bytes,
     )?;
     let started = Instant::now();
-    let total = limit.map_or(dataset.frames.len(), |l| l.min(dataset.frames.len()));
+    let total = source.total;
     let mut summary = OfflineSummary::default();
     let mut poses = Vec::new();
     let mut previous: Option<FrameHeader> = None;
-    for (sequence, files) in dataset.frames.iter().take(total).enumerate() {
+    let mut first_ns = None;
+    for (sequence, frame) in frames.enumerate() {
         let sequence = sequence as u64;
         summary.frames += 1;
-        let (colour, depth, _) = match load_frame(files, DepthEncoding::Rvl) {
-            Ok(loaded) => loaded,
+        let OfflineFrame {
+            timestamp_ns: source_ns,
+            colour,
+            depth,
+        } = match frame {
+            Ok(frame) => frame,
             Err(message) => {
                 summary.skipped.push((sequence, message));
                 continue;
             }
         };
         // Stamps start at 1 ns past zero: 0 means "missing" on the wire.
-        let timestamp_ns = files.timestamp_ns - dataset.frames[0].timestamp_ns + 1;
+        let first = *first_ns.get_or_insert(source_ns);
+        let timestamp_ns = source_ns.saturating_sub(first) + 1;
         let bytes = RgbdFrame {
             robot_id: OFFLINE_ROBOT.into(),
             session_id: "offline".into(),
             sequence,
             timestamp_ns,
-            camera: Some(dataset.camera.clone()),
-            depth_scale: dataset.depth_scale,
+            camera: Some(source.camera.clone()),
+            depth_scale: source.depth_scale,
             colour: Some(colour),
             depth: Some(depth),
             odometry: None,
@@ -105,15 +156,16 @@ pub fn run(
             sequence,
             timestamp_ns,
         });
-        summary
-            .pipeline_ms
-            .push(processed.processing.as_secs_f64() * 1e3);
+        let ms = |d: Duration| d.as_secs_f64() * 1e3;
+        summary.pipeline_ms.push(ms(processed.processing));
+        summary.decode_ms.push(ms(processed.decode));
+        summary.detection_ms.push(ms(processed.detection));
         if let Some(tracking) = &processed.tracking {
             summary.maps = tracking.maps;
             summary.keyframes = tracking.keyframes;
             summary.map_points = tracking.map_points;
+            summary.markers = tracking.markers;
             let pose = tracking.result.as_ref().and_then(|r| {
-                let ms = |d: Duration| d.as_secs_f64() * 1e3;
                 summary.features_ms.push(ms(r.times.features));
                 summary.tracking_ms.push(ms(r.times.tracking));
                 summary.mapping_ms.push(ms(r.times.mapping));
@@ -128,9 +180,9 @@ pub fn run(
                 (TrackingState::Tracking, Some((map, pose))) => {
                     summary.tracked += 1;
                     poses.push(TrajectoryPose {
-                        timestamp_ns: files.timestamp_ns,
+                        timestamp_ns: source_ns,
                         map: map as u32,
-                        world_from_camera: crate::robots::api_pose(&pose),
+                        world_from_camera: crate::model::api_pose(&pose),
                     });
                 }
                 _ => summary.untracked += 1,
@@ -143,12 +195,22 @@ pub fn run(
         }
         progress(summary.frames, total);
     }
+    if let Some(tracker) = processor.tracker() {
+        let end_ns = previous.as_ref().map_or(0, |p| p.timestamp_ns);
+        summary.map_views = tracker
+            .atlas()
+            .maps
+            .iter()
+            .enumerate()
+            .map(|(i, map)| crate::model::map_view(map, i, end_ns))
+            .collect();
+    }
     summary.elapsed = started.elapsed();
     Ok((summary, poses))
 }
 
-/// Poses as a TUM trajectory file (`t x y z qx qy qz qw`, seconds).
-pub fn tum_text(poses: &[TrajectoryPose]) -> String {
+/// Poses as a trajectory (stamps in seconds).
+pub fn trajectory(poses: &[TrajectoryPose]) -> Trajectory {
     let mut trajectory = Trajectory::default();
     for p in poses {
         let [x, y, z] = p.world_from_camera.translation_m;
@@ -160,7 +222,12 @@ pub fn tum_text(poses: &[TrajectoryPose]) -> String {
             nalgebra::Isometry3::from_parts(nalgebra::Translation3::new(x, y, z), rotation),
         );
     }
-    trajectory.to_tum()
+    trajectory
+}
+
+/// Poses as a TUM trajectory file (`t x y z qx qy qz qw`, seconds).
+pub fn tum_text(poses: &[TrajectoryPose]) -> String {
+    trajectory(poses).to_tum()
 }
 
 /// Writes the poses of one map as a TUM file.

@@ -3,11 +3,12 @@
 //! async runtime; every failure is a [`Rejection`] with a reason code and a readable message.
 
 use crate::config::{MarkerConfig, TrackingConfig};
+use std::sync::Arc;
 use std::time::{Duration, Instant};
-use vsgraphs_proto::api::TrackingState;
 use vsgraphs_proto::api::{DistanceSource, MarkerDetection, MarkerPose};
+use vsgraphs_proto::api::{MapView, TrackingState};
 use vsgraphs_proto::{keys, Message, RgbdFrame};
-use vsgraphs_slam::{FrameResult, Tracker};
+use vsgraphs_slam::{FrameResult, MarkerSighting, Tracker};
 use vsgraphs_vision::aruco::MarkerDetector;
 use vsgraphs_vision::camera::PinholeCamera;
 use vsgraphs_vision::decode::{self, DecodeError};
@@ -83,6 +84,9 @@ pub struct Processed {
     /// Absent when tracking is off.
     pub tracking: Option<FrameTracking>,
     pub processing: Duration,
+    /// Parts of it: protobuf and image decoding, and marker detection with pose estimation.
+    pub decode: Duration,
+    pub detection: Duration,
 }
 
 /// What tracking made of a frame.
@@ -95,8 +99,12 @@ pub struct FrameTracking {
     pub maps: usize,
     pub keyframes: usize,
     pub map_points: usize,
+    /// Marker landmarks of the active map.
+    pub markers: usize,
     /// Why the frame could not be tracked, when it is an error rather than a lost track.
     pub error: Option<String>,
+    /// A snapshot of the active map when the frame changed it (a keyframe was made).
+    pub map_view: Option<Arc<MapView>>,
 }
 
 /// The header of a readable frame, for sequence and timestamp bookkeeping.
@@ -247,7 +255,10 @@ impl FrameProcessor {
             frame.depth_scale,
         )
         .map_err(|e| decode_rejection(e, Reason::DepthDecode, sequence))?;
+        // Decoding: the protobuf, the colour image and the depth image.
+        let decode = started.elapsed();
 
+        let detection_started = Instant::now();
         let detections = self
             .detector
             .detect(&grey)
@@ -267,27 +278,35 @@ impl FrameProcessor {
             .settings
             .depth_refinement
             .then_some((&depth, self.settings.depth_agreement));
-        let markers = detections
-            .into_iter()
-            .map(|detection| {
-                // A pose that cannot be computed leaves the detection without one.
-                let pose = estimator
-                    .estimate(&detection, depth_check)
-                    .ok()
-                    .as_ref()
-                    .map(api_pose);
-                MarkerDetection {
-                    id: detection.id,
-                    corners_px: detection.corners,
-                    pose,
-                }
-            })
-            .collect();
+        let mut markers = Vec::with_capacity(detections.len());
+        let mut sightings = Vec::with_capacity(detections.len());
+        for detection in detections {
+            // A pose that cannot be computed leaves the detection without one.
+            let estimate = estimator.estimate(&detection, depth_check).ok();
+            sightings.push(MarkerSighting::from_detection(
+                &detection,
+                self.settings.side_m,
+                estimate.as_ref(),
+            ));
+            markers.push(MarkerDetection {
+                id: detection.id,
+                corners_px: detection.corners,
+                pose: estimate.as_ref().map(api_pose),
+            });
+        }
+        let detection = detection_started.elapsed();
         let tracking = self.tracker.as_mut().map(|tracker| {
             if previous.is_some_and(|p| p.session_id != frame.session_id) {
                 tracker.restart();
             }
-            track(tracker, &camera, frame.timestamp_ns, &grey, &depth)
+            track(
+                tracker,
+                &camera,
+                frame.timestamp_ns,
+                &grey,
+                &depth,
+                sightings,
+            )
         });
         Ok(Processed {
             session_id: frame.session_id,
@@ -298,6 +317,8 @@ impl FrameProcessor {
             markers,
             tracking,
             processing: started.elapsed(),
+            decode,
+            detection,
         })
     }
 }
@@ -325,16 +346,24 @@ fn track(
     timestamp_ns: u64,
     grey: &vsgraphs_vision::opencv::core::Mat,
     depth: &vsgraphs_vision::depth::DepthImage,
+    sightings: Vec<MarkerSighting>,
 ) -> FrameTracking {
-    let summary = |tracker: &Tracker, state, result, error| {
+    let summary = |tracker: &Tracker, state, result: Option<FrameResult>, error| {
         let map = tracker.atlas().active();
+        let changed = result.as_ref().is_some_and(|r| r.keyframe.is_some());
+        let map_view = map.filter(|_| changed).map(|m| {
+            let index = tracker.atlas().active_index().unwrap_or(0);
+            Arc::new(crate::model::map_view(m, index, timestamp_ns))
+        });
         FrameTracking {
             state,
             result,
             maps: tracker.atlas().maps.len(),
             keyframes: map.map_or(0, |m| m.keyframes.len()),
             map_points: map.map_or(0, |m| m.live_points()),
+            markers: map.map_or(0, |m| m.markers.len()),
             error,
+            map_view,
         }
     };
     if !camera.is_undistorted() {
@@ -342,7 +371,7 @@ fn track(
     }
     let pinhole = vsgraphs_slam::Pinhole::new(camera.fx, camera.fy, camera.cx, camera.cy);
     // On an error the frame has no pose (it counts as untracked); the state is the tracker's.
-    let (result, error) = match tracker.track(timestamp_ns, &pinhole, grey, depth) {
+    let (result, error) = match tracker.track(timestamp_ns, &pinhole, grey, depth, sightings) {
         Ok(result) => (Some(result), None),
         Err(e) => (None, Some(e.to_string())),
     };

@@ -10,7 +10,7 @@ use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex, RwLock};
 use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
 use vsgraphs_proto::api::{
-    self, FrameCounters, FrameDetections, Pose, Presence, RobotStatus, Timing, TrackingStatus,
+    self, FrameCounters, FrameDetections, MapView, Presence, RobotStatus, Timing, TrackingStatus,
     TrajectoryPose,
 };
 
@@ -45,23 +45,16 @@ struct RobotState {
     last_rejection: Option<api::Rejection>,
     /// Frames each marker id was detected in.
     markers_detected: BTreeMap<i32, u64>,
-    /// (when processed, capture-to-processed latency ms, processing ms) of recent frames.
-    recent: VecDeque<(Instant, f64, f64)>,
+    /// Timing of recent frames.
+    recent: VecDeque<Recent>,
     /// Tracking as of the latest frame (its timing fields are filled in by `status`).
     tracking: Option<TrackingStatus>,
     /// (when, features ms, tracking ms, mapping ms) of recently tracked frames.
     tracking_recent: VecDeque<(Instant, f64, f64, f64)>,
     /// Every tracked pose (72 bytes each: an hour at 30 Hz is under 8 MB).
     trajectory: Vec<TrajectoryPose>,
-}
-
-/// An `Se3` as the API writes it.
-pub fn api_pose(pose: &vsgraphs_slam::Se3) -> Pose {
-    let q = pose.rotation.coords;
-    Pose {
-        translation_m: [pose.translation.x, pose.translation.y, pose.translation.z],
-        rotation_xyzw: [q.x, q.y, q.z, q.w],
-    }
+    /// The latest snapshot of each map of the robot's Atlas, by index.
+    maps: BTreeMap<u32, Arc<MapView>>,
 }
 
 impl RobotEntry {
@@ -114,7 +107,7 @@ impl RobotEntry {
     }
 
     /// A frame was processed: its detections become the robot's latest.
-    pub fn record_processed(&self, detections: FrameDetections, processing: Duration) {
+    pub fn record_processed(&self, detections: FrameDetections, times: ProcessingTimes) {
         let latency_ms = (now_ns() as f64 - detections.timestamp_ns as f64) / 1e6;
         {
             let mut state = self.state();
@@ -123,13 +116,18 @@ impl RobotEntry {
                 *state.markers_detected.entry(marker.id).or_default() += 1;
             }
             let now = Instant::now();
-            state
-                .recent
-                .push_back((now, latency_ms, processing.as_secs_f64() * 1e3));
+            let ms = |d: Duration| d.as_secs_f64() * 1e3;
+            state.recent.push_back(Recent {
+                at: now,
+                latency_ms,
+                processing_ms: ms(times.total),
+                decode_ms: ms(times.decode),
+                detection_ms: ms(times.detection),
+            });
             while state
                 .recent
                 .front()
-                .is_some_and(|(t, ..)| now.duration_since(*t) > TIMING_WINDOW)
+                .is_some_and(|r| now.duration_since(r.at) > TIMING_WINDOW)
             {
                 state.recent.pop_front();
             }
@@ -150,6 +148,8 @@ impl RobotEntry {
             keyframes: 0,
             map_points: 0,
             inliers: 0,
+            markers: 0,
+            markers_in_view: 0,
             frames_tracked: 0,
             frames_untracked: 0,
             last_event: None,
@@ -161,6 +161,10 @@ impl RobotEntry {
         status.maps = tracking.maps as u32;
         status.keyframes = tracking.keyframes as u64;
         status.map_points = tracking.map_points as u64;
+        status.markers = tracking.markers as u64;
+        if let Some(view) = &tracking.map_view {
+            state.maps.insert(view.map, view.clone());
+        }
         if let Some(error) = &tracking.error {
             status.last_event = Some(format!("error: {error}"));
         }
@@ -168,6 +172,7 @@ impl RobotEntry {
             Some(result) => {
                 status.map = result.map as u32;
                 status.inliers = result.inliers as u64;
+                status.markers_in_view = result.markers_in_view as u64;
                 if let Some(event) = &result.event {
                     status.last_event = Some(event.clone());
                 }
@@ -189,7 +194,7 @@ impl RobotEntry {
                 match result.world_from_camera {
                     Some(pose) => {
                         status.frames_tracked += 1;
-                        let pose = api_pose(&pose);
+                        let pose = crate::model::api_pose(&pose);
                         status.world_from_camera = Some(pose);
                         status.pose_timestamp_ns = Some(timestamp_ns);
                         state.trajectory.push(TrajectoryPose {
@@ -204,6 +209,11 @@ impl RobotEntry {
             None => status.frames_untracked += 1,
         }
         state.tracking = Some(status);
+    }
+
+    /// The latest snapshot of every map of the robot's Atlas, by index.
+    pub fn maps(&self) -> Vec<Arc<MapView>> {
+        self.state().maps.values().cloned().collect()
     }
 
     /// Every pose tracking gave this robot, oldest first.
@@ -232,15 +242,15 @@ impl RobotEntry {
         let recent: Vec<_> = state
             .recent
             .iter()
-            .filter(|(t, ..)| now.duration_since(*t) <= TIMING_WINDOW)
+            .filter(|r| now.duration_since(r.at) <= TIMING_WINDOW)
             .collect();
-        let mean = |f: fn(&(Instant, f64, f64)) -> f64| {
+        let mean = |f: fn(&Recent) -> f64| {
             (!recent.is_empty())
                 .then(|| recent.iter().map(|r| f(r)).sum::<f64>() / recent.len() as f64)
         };
         let rate_hz = match (recent.first(), recent.last()) {
             (Some(first), Some(last)) if recent.len() > 1 => {
-                (recent.len() - 1) as f64 / last.0.duration_since(first.0).as_secs_f64().max(1e-6)
+                (recent.len() - 1) as f64 / last.at.duration_since(first.at).as_secs_f64().max(1e-6)
             }
             _ => 0.0,
         };
@@ -260,10 +270,12 @@ impl RobotEntry {
             },
             timing: Timing {
                 rate_hz,
-                latency_ms_last: recent.last().map(|r| r.1),
-                latency_ms_mean: mean(|r| r.1),
-                latency_ms_max: recent.iter().map(|r| r.1).reduce(f64::max),
-                processing_ms_mean: mean(|r| r.2),
+                latency_ms_last: recent.last().map(|r| r.latency_ms),
+                latency_ms_mean: mean(|r| r.latency_ms),
+                latency_ms_max: recent.iter().map(|r| r.latency_ms).reduce(f64::max),
+                processing_ms_mean: mean(|r| r.processing_ms),
+                decode_ms_mean: mean(|r| r.decode_ms),
+                detection_ms_mean: mean(|r| r.detection_ms),
             },
             last_rejection: state.last_rejection.clone(),
             markers_detected: state.markers_detected.clone(),
@@ -284,6 +296,25 @@ impl RobotEntry {
             }),
         }
     }
+}
+
+/// How long a processed frame took, as a whole and by stage.
+#[derive(Debug, Clone, Copy, Default)]
+pub struct ProcessingTimes {
+    pub total: Duration,
+    pub decode: Duration,
+    pub detection: Duration,
+}
+
+/// The timing of one recently processed frame, ms.
+#[derive(Debug, Clone, Copy)]
+struct Recent {
+    at: Instant,
+    /// From capture to processed.
+    latency_ms: f64,
+    processing_ms: f64,
+    decode_ms: f64,
+    detection_ms: f64,
 }
 
 /// All robots, by id. Entries are never removed while the server runs: an offline robot keeps
@@ -416,7 +447,13 @@ mod tests {
             image_height: 3,
             markers: vec![],
         };
-        robot.record_processed(detections.clone(), Duration::from_millis(3));
+        robot.record_processed(
+            detections.clone(),
+            ProcessingTimes {
+                total: Duration::from_millis(3),
+                ..ProcessingTimes::default()
+            },
+        );
         let marker = |id| vsgraphs_proto::api::MarkerDetection {
             id,
             corners_px: [[0.0; 2]; 4],
@@ -428,7 +465,10 @@ mod tests {
                 markers: vec![marker(7), marker(2)],
                 ..detections.clone()
             },
-            Duration::from_millis(5),
+            ProcessingTimes {
+                total: Duration::from_millis(5),
+                ..ProcessingTimes::default()
+            },
         );
         robot.record_processed(
             FrameDetections {
@@ -436,7 +476,10 @@ mod tests {
                 markers: vec![marker(7)],
                 ..detections
             },
-            Duration::from_millis(4),
+            ProcessingTimes {
+                total: Duration::from_millis(4),
+                ..ProcessingTimes::default()
+            },
         );
         let status = robot.status();
         assert_eq!(status.markers_detected, BTreeMap::from([(2, 1), (7, 2)]));

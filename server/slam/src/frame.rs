@@ -1,6 +1,7 @@
 //! A frame as tracking sees it: ORB keypoints with depth and their descriptors, bucketed in a
 //! grid so that the keypoints near a predicted pixel are found without scanning them all.
 
+use crate::markers::MarkerSighting;
 use nalgebra::Vector3;
 use vsgraphs_sgraph::Pinhole;
 use vsgraphs_vision::opencv::prelude::*;
@@ -85,6 +86,8 @@ pub struct Frame {
     pub timestamp_ns: u64,
     pub keypoints: Vec<Keypoint>,
     pub descriptors: Vec<Descriptor>,
+    /// ArUco markers detected in the image (set by whoever detected them).
+    pub markers: Vec<MarkerSighting>,
     cell_width: f64,
     cell_height: f64,
     cells: Vec<Vec<u32>>,
@@ -132,6 +135,7 @@ impl Frame {
             timestamp_ns,
             keypoints,
             descriptors,
+            markers: Vec::new(),
             cell_width,
             cell_height,
             cells,

@@ -3,8 +3,9 @@
 //! never dangle. The [`Atlas`] holds every map a robot has started.
 
 use crate::frame::{hamming, Descriptor, Frame, Rig};
+use crate::markers::MapMarker;
 use nalgebra::Vector3;
-use std::collections::HashMap;
+use std::collections::{BTreeMap, HashMap};
 use vsgraphs_sgraph::Se3;
 
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, PartialOrd, Ord)]
@@ -60,6 +61,8 @@ impl MapPoint {
 pub struct Map {
     pub keyframes: Vec<KeyFrame>,
     pub points: Vec<MapPoint>,
+    /// Marker landmarks by ArUco id.
+    pub markers: BTreeMap<i32, MapMarker>,
     /// Each keyframe's covisible keyframes as of its last refresh (see [`Map::neighbours`]).
     neighbours: Vec<Vec<(KeyFrameId, usize)>>,
 }

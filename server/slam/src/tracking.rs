@@ -16,6 +16,7 @@
 use crate::frame::{Descriptor, Frame, Rig};
 use crate::map::{Atlas, KeyFrameId, Map, MapPointId};
 use crate::mapping;
+use crate::markers::{self, MarkerSighting};
 use crate::matcher::{self, Projected, SearchOptions, TH_HIGH};
 use nalgebra::{Matrix3, Vector2, Vector3};
 use std::collections::{HashMap, HashSet};
@@ -50,6 +51,8 @@ pub struct TrackerConfig {
     pub new_map_after_s: f64,
     /// Keyframes tried for relocalisation per frame (the most recent first, then round-robin).
     pub relocalisation_candidates: usize,
+    /// Map markers as landmarks and use them in tracking and relocalisation.
+    pub marker_landmarks: bool,
 }
 
 impl Default for TrackerConfig {
@@ -64,6 +67,7 @@ impl Default for TrackerConfig {
             local_ba_iterations: 10,
             new_map_after_s: 3.0,
             relocalisation_candidates: 4,
+            marker_landmarks: true,
         }
     }
 }
@@ -108,6 +112,8 @@ pub struct FrameResult {
     pub features_with_depth: usize,
     /// Map points the final pose explains.
     pub inliers: usize,
+    /// Mapped markers in view whose corners constrained the pose.
+    pub markers_in_view: usize,
     pub keyframe: Option<KeyFrameId>,
     /// Something worth a log line: a map started, tracking lost, relocalised.
     pub event: Option<String>,
@@ -219,13 +225,14 @@ impl Tracker {
     }
 
     /// Tracks one frame: an 8-bit grey image and its registered depth, with the camera's
-    /// rectified intrinsics.
+    /// rectified intrinsics and the ArUco markers detected in it.
     pub fn track(
         &mut self,
         timestamp_ns: u64,
         camera: &Pinhole,
         grey: &Mat,
         depth: &DepthImage,
+        sightings: Vec<MarkerSighting>,
     ) -> Result<FrameResult, TrackError> {
         let started = Instant::now();
         let rig = self.rig_for(camera, depth.width, depth.height);
@@ -237,7 +244,21 @@ impl Tracker {
         }
         self.rig = Some(rig.clone());
         let extraction = self.extractor.extract(grey, Some((depth, rig.bf)))?;
-        let frame = Frame::new(timestamp_ns, &extraction, &rig);
+        let mut frame = Frame::new(timestamp_ns, &extraction, &rig);
+        if self.config.marker_landmarks {
+            frame.markers = sightings;
+            // A marker the map lacks is mapped only once two frames in a row saw its id: one
+            // misread id would otherwise become a landmark in the wrong place.
+            let map = self.atlas.active();
+            let last = self.last.as_ref().map(|l| &l.frame.markers);
+            for s in &mut frame.markers {
+                let mapped = map.is_some_and(|m| m.markers.contains_key(&s.id));
+                let seen_before = last.is_some_and(|l| l.iter().any(|o| o.id == s.id));
+                if !mapped && !seen_before {
+                    s.camera_from_marker = None;
+                }
+            }
+        }
         let mut times = StageTimes {
             features: started.elapsed(),
             ..StageTimes::default()
@@ -249,6 +270,7 @@ impl Tracker {
             features: frame.len(),
             features_with_depth: frame.with_depth(),
             inliers: 0,
+            markers_in_view: 0,
             keyframe: None,
             event,
             times,
@@ -358,6 +380,7 @@ impl Tracker {
                 created += 1;
             }
         }
+        markers::add_sightings(self.map_mut(), keyframe);
         let kf = self.map().keyframe(keyframe);
         self.last = Some(LastFrame {
             frame: kf.frame.clone(),
@@ -397,7 +420,7 @@ impl Tracker {
         let relocalised_recently = self
             .relocalised_ns
             .is_some_and(|t| frame.timestamp_ns.saturating_sub(t) < 1_000_000_000);
-        self.track_local_map(frame, rig, matched, relocalised_recently)
+        self.track_local_map(frame, rig, matched, relocalised_recently, &[])
     }
 
     /// Matches the last frame's points by projection from the predicted pose.
@@ -507,7 +530,7 @@ impl Tracker {
         pairs: Vec<(usize, Source)>,
     ) -> Matched {
         let map = self.map();
-        let observations: Vec<PoseObservation> = pairs
+        let mut observations: Vec<PoseObservation> = pairs
             .iter()
             .map(|&(i, source)| {
                 observation(
@@ -521,6 +544,8 @@ impl Tracker {
                 )
             })
             .collect();
+        // Mapped markers in view constrain the pose through their corners.
+        observations.extend(markers::corner_observations(map, &frame.markers));
         let PoseOnlyResult {
             world_from_camera,
             inliers,
@@ -552,6 +577,7 @@ impl Tracker {
         rig: &Rig,
         matched: Matched,
         relocalised_recently: bool,
+        seeds: &[KeyFrameId],
     ) -> Option<Tracked> {
         let map = self.map();
         let mut points: Vec<Option<MapPointId>> = vec![None; frame.len()];
@@ -569,6 +595,11 @@ impl Tracker {
         }
         let mut local: Vec<(KeyFrameId, usize)> = shared.into_iter().collect();
         local.sort_by(|a, b| b.1.cmp(&a.1).then(a.0.cmp(&b.0)));
+        for &k in seeds {
+            if !local.iter().any(|&(l, _)| l == k) {
+                local.push((k, 0));
+            }
+        }
         let reference = local.first().map(|&(k, _)| k).or(self.reference);
         let mut keyframes: Vec<KeyFrameId> = local.iter().map(|&(k, _)| k).collect();
         let mut in_local: HashSet<KeyFrameId> = keyframes.iter().copied().collect();
@@ -683,12 +714,30 @@ impl Tracker {
         })
     }
 
-    /// Tries the next few keyframes: descriptor matches, a RANSAC pose from the matches'
-    /// depths, pose optimisation, then the local map.
+    /// A mapped marker in view gives the pose at once (then the local map around the keyframes
+    /// that saw it refines it); otherwise tries the next few keyframes: descriptor matches, a
+    /// RANSAC pose from the matches' depths, pose optimisation, then the local map.
     fn relocalise(&mut self, frame: &Frame, rig: &Rig) -> Option<Tracked> {
         let keyframes = self.atlas.active()?.keyframes.len();
         if keyframes == 0 {
             return None;
+        }
+        if let Some((id, world_from_camera)) =
+            markers::pose_from_markers(self.map(), &frame.markers)
+        {
+            let seeds: Vec<KeyFrameId> = self.map().markers[&id]
+                .observations
+                .iter()
+                .map(|&(k, _)| k)
+                .collect();
+            let matched = Matched {
+                world_from_camera,
+                pairs: Vec::new(),
+                inliers: 0,
+            };
+            if let Some(tracked) = self.track_local_map(frame, rig, matched, true, &seeds) {
+                return Some(tracked);
+            }
         }
         let tries = self.config.relocalisation_candidates.min(keyframes);
         for _ in 0..tries {
@@ -698,7 +747,7 @@ impl Tracker {
             let Some(matched) = self.relocalise_against(frame, rig, k) else {
                 continue;
             };
-            if let Some(tracked) = self.track_local_map(frame, rig, matched, true) {
+            if let Some(tracked) = self.track_local_map(frame, rig, matched, true, &[]) {
                 self.relocalisation_cursor = 0;
                 return Some(tracked);
             }
@@ -760,6 +809,11 @@ impl Tracker {
         self.reference = tracked.reference.or(self.reference);
         result.world_from_camera = Some(tracked.world_from_camera);
         result.inliers = tracked.inliers;
+        result.markers_in_view = frame
+            .markers
+            .iter()
+            .filter(|s| self.map().markers.contains_key(&s.id))
+            .count();
         let mut world_from_camera = tracked.world_from_camera;
         let mut keyframe = None;
         let mut last_points = tracked.points.clone();
@@ -772,6 +826,10 @@ impl Tracker {
                 &tracked.points,
             );
             self.recent_points.extend(created);
+            let added = markers::add_sightings(self.map_mut(), k);
+            if !added.is_empty() {
+                tracing::debug!(?added, keyframe = k.0, "markers mapped");
+            }
             mapping::fuse_with_neighbours(self.map_mut(), rig, k);
             let mut recent = std::mem::take(&mut self.recent_points);
             mapping::cull_recent_points(self.map_mut(), &mut recent, k);
@@ -796,7 +854,8 @@ impl Tracker {
     }
 
     /// ORB-SLAM's keyframe rules for RGB-D: clearly fewer points tracked than the reference
-    /// keyframe holds, or many close points the map lacks. ORB-SLAM also waits for its mapping
+    /// keyframe holds, or many close points the map lacks; and (ours) a marker the map lacks.
+    /// ORB-SLAM also waits for its mapping
     /// thread to be idle or for a timeout; mapping runs inline here, so it is always idle and
     /// those conditions always hold.
     fn needs_keyframe(&self, frame: &Frame, rig: &Rig, tracked: &Tracked) -> bool {
@@ -822,8 +881,16 @@ impl Tracker {
             }
         }
         let need_close = tracked_close < 100 && untracked_close > 70;
+        // A marker the map lacks is mapped from a keyframe, as soon as it is seen.
+        let new_marker = frame.markers.iter().any(|s| {
+            s.camera_from_marker
+                .as_ref()
+                .is_some_and(markers::is_mappable)
+                && !map.markers.contains_key(&s.id)
+        });
         let ratio = self.config.keyframe_ratio;
-        let fewer = (tracked.inliers as f64) < ratio * reference_points as f64 || need_close;
+        let fewer =
+            (tracked.inliers as f64) < ratio * reference_points as f64 || need_close || new_marker;
         fewer && tracked.inliers > 15
     }
 }

@@ -8,7 +8,7 @@ pub mod queue;
 
 use crate::config::Config;
 use crate::pipeline::{FrameHeader, FrameProcessor};
-use crate::robots::{now_ns, Registry, RobotEntry};
+use crate::robots::{now_ns, ProcessingTimes, Registry, RobotEntry};
 use queue::{Arrival, Pushed};
 use std::panic::{catch_unwind, AssertUnwindSafe};
 use std::sync::atomic::Ordering;
@@ -236,7 +236,11 @@ fn run_worker(robot: Arc<RobotEntry>, config: &Config) {
                         image_height: processed.image_height,
                         markers: processed.markers,
                     },
-                    processed.processing,
+                    ProcessingTimes {
+                        total: processed.processing,
+                        decode: processed.decode,
+                        detection: processed.detection,
+                    },
                 );
             }
             Ok(Err(rejection)) => {

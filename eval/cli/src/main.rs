@@ -7,9 +7,12 @@ use vsgraphs_eval::metrics::{Alignment, Compare, Relation};
 use vsgraphs_eval::posegraph;
 use vsgraphs_eval::score::{self, Metric};
 use vsgraphs_eval::semantics::{self, MapAlignment};
+use vsgraphs_eval_cli::scenario::ScenarioOptions;
 use vsgraphs_proto::model::BuildingModel;
+use vsgraphs_server::config::Config;
 use vsgraphs_sgraph::factors::pose::PoseError;
 use vsgraphs_sgraph::{Method, Options};
+use vsgraphs_sim::scenarios::Scenario;
 
 #[derive(Parser)]
 #[command(name = "vsgraphs-eval", version, about = "vsgraphs evaluation tools")]
@@ -139,6 +142,32 @@ enum Command {
         #[arg(long)]
         json: bool,
     },
+    /// Render one robot of a simulated scenario (built-in name or JSON file), run it through the
+    /// server's pipeline (decoding, markers, tracking, mapping) without the network, and print
+    /// both scores: ATE against the walk, and the map's model against the building.
+    Scenario {
+        /// seq01 … seq06, two-robots, or a scenario JSON file.
+        scenario: String,
+        /// Which robot's walk (index into the scenario's routes).
+        #[arg(long, default_value_t = 0)]
+        robot: usize,
+        /// Stop after this many frames.
+        #[arg(long)]
+        limit: Option<usize>,
+        /// Renderer noise seed.
+        #[arg(long, default_value_t = 1)]
+        seed: u64,
+        /// Server configuration (TOML); default: the built-in defaults.
+        #[arg(long)]
+        config: Option<PathBuf>,
+        /// Also write the estimated trajectory (TUM), the reference (TUM) and the map's model
+        /// (JSON) into this directory.
+        #[arg(long)]
+        out: Option<PathBuf>,
+        /// Print JSON instead of the tables.
+        #[arg(long)]
+        json: bool,
+    },
     /// Optimise a g2o pose graph (VERTEX_SE3:QUAT / EDGE_SE3:QUAT) and print cost per iteration.
     Posegraph {
         input: PathBuf,
@@ -161,6 +190,13 @@ enum Command {
 }
 
 fn main() -> anyhow::Result<()> {
+    // Logs of the server's pipeline (scenario runs) go to stderr; RUST_LOG chooses.
+    tracing_subscriber::fmt()
+        .with_env_filter(
+            tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| "warn".into()),
+        )
+        .with_writer(std::io::stderr)
+        .init();
     match Cli::parse().command {
         Command::Ate { args } => args.run(Metric::Ape)?,
         Command::Rpe {
@@ -194,6 +230,48 @@ fn main() -> anyhow::Result<()> {
                 println!("{}", serde_json::to_string_pretty(&report)?);
             } else {
                 semantics::print_table(&report);
+            }
+        }
+        Command::Scenario {
+            scenario,
+            robot,
+            limit,
+            seed,
+            config,
+            out,
+            json,
+        } => {
+            let config = match config {
+                Some(path) => Config::load(&path)?,
+                None => Config::default(),
+            };
+            let scenario = Scenario::load(&scenario)?;
+            let options = ScenarioOptions {
+                robot,
+                limit,
+                seed,
+                ..ScenarioOptions::default()
+            };
+            let run =
+                vsgraphs_eval_cli::scenario::run(&config, &scenario, &options, |done, total| {
+                    if done % 250 == 0 || done == total {
+                        eprintln!("{done}/{total} frames");
+                    }
+                })?;
+            if let Some(dir) = out {
+                std::fs::create_dir_all(&dir)
+                    .with_context(|| format!("creating {}", dir.display()))?;
+                run.estimate.write_tum(&dir.join("estimate.txt"))?;
+                run.reference.write_tum(&dir.join("groundtruth.txt"))?;
+                std::fs::write(
+                    dir.join("model.json"),
+                    serde_json::to_string_pretty(&run.model)?,
+                )?;
+            }
+            if json {
+                println!("{}", serde_json::to_string_pretty(&run)?);
+            } else {
+                vsgraphs_eval_cli::scenario::print_table(&run);
             }
         }
         Command::Posegraph {

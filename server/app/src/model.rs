@@ -1,0 +1,99 @@
+//! What a robot's maps look like from outside: snapshots of a map for the API and the page
+//! (keyframes, decimated points, marker landmarks), and the building model (the `proto::model`
+//! JSON that `vsgraphs-eval semantics` scores). Markers are its only layer so far; walls,
+//! doorways, rooms and corridors join it with the S-Graph.
+
+use vsgraphs_proto::api::{MapKeyframe, MapMarker, MapView, Pose};
+use vsgraphs_proto::model::{self, BuildingModel, ModelMarker};
+use vsgraphs_slam::{Map, Se3};
+
+/// Points a snapshot keeps at most (evenly decimated); the API thins them further on request.
+pub const SNAPSHOT_POINTS: usize = 50_000;
+
+/// An `Se3` as the API writes it.
+pub fn api_pose(pose: &Se3) -> Pose {
+    let q = pose.rotation.coords;
+    let t = pose.translation;
+    Pose {
+        translation_m: [t.x, t.y, t.z],
+        rotation_xyzw: [q.x, q.y, q.z, q.w],
+    }
+}
+
+/// A snapshot of `map` (index `index` of its Atlas) after the frame stamped `updated_ns`.
+pub fn map_view(map: &Map, index: usize, updated_ns: u64) -> MapView {
+    let live: Vec<[f32; 3]> = map
+        .points
+        .iter()
+        .filter(|p| !p.bad)
+        .map(|p| p.position.map(|x| x as f32).into())
+        .collect();
+    let point_count = live.len() as u64;
+    MapView {
+        map: index as u32,
+        updated_ns,
+        keyframe_count: map.keyframes.len() as u64,
+        point_count,
+        marker_count: map.markers.len() as u64,
+        keyframes: map
+            .keyframes
+            .iter()
+            .map(|k| MapKeyframe {
+                id: k.id.0,
+                timestamp_ns: k.frame.timestamp_ns,
+                world_from_camera: api_pose(&k.world_from_camera),
+            })
+            .collect(),
+        points: decimate(live, SNAPSHOT_POINTS),
+        markers: map
+            .markers
+            .values()
+            .map(|m| MapMarker {
+                id: m.id,
+                side_m: m.side_m,
+                world_from_marker: api_pose(&m.world_from_marker),
+                observations: m.observations.len() as u32,
+            })
+            .collect(),
+    }
+}
+
+/// Every `⌈n / at_most⌉`-th item, so that at most `at_most` remain, spread over the whole list.
+pub fn decimate<T>(items: Vec<T>, at_most: usize) -> Vec<T> {
+    if items.len() <= at_most {
+        return items;
+    }
+    let stride = items.len().div_ceil(at_most.max(1));
+    items.into_iter().step_by(stride).collect()
+}
+
+/// The building model of a map: its marker landmarks (the only layer mapped so far).
+pub fn building_model(view: &MapView) -> BuildingModel {
+    BuildingModel {
+        markers: view
+            .markers
+            .iter()
+            .map(|m| ModelMarker {
+                id: m.id,
+                world_from_marker: model::Pose {
+                    translation: m.world_from_marker.translation_m,
+                    quaternion_xyzw: m.world_from_marker.rotation_xyzw,
+                },
+            })
+            .collect(),
+        ..BuildingModel::default()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn decimation_keeps_at_most_the_limit_spread_evenly() {
+        let kept = decimate((0..10).collect(), 4);
+        assert_eq!(kept, vec![0, 3, 6, 9]);
+        assert_eq!(decimate((0..3).collect::<Vec<i32>>(), 4), vec![0, 1, 2]);
+        assert_eq!(decimate((0..100).collect::<Vec<i32>>(), 7).len(), 7);
+    }
+}

@@ -1,0 +1,286 @@
+//! Markers as landmarks: every ArUco id a keyframe sees becomes an SE(3) landmark of the map
+//! (the first layer of the S-Graph), placed from the detector's pose at its first keyframe and
+//! refined by local bundle adjustment through its corners.
+//!
+//! Tracking uses mapped markers in view as extra constraints (their four corners as points of
+//! known world position), and a lost robot that sees a mapped marker has its pose at once.
+
+use crate::map::{KeyFrameId, Map};
+use nalgebra::Vector2;
+use vsgraphs_sgraph::factors::marker::marker_corners;
+use vsgraphs_sgraph::pose_only::{Measurement, PoseObservation};
+use vsgraphs_sgraph::Se3;
+use vsgraphs_vision::aruco::Detection;
+use vsgraphs_vision::pose::MarkerPoseEstimate;
+
+/// One marker as one frame saw it.
+#[derive(Clone, Debug, PartialEq)]
+pub struct MarkerSighting {
+    pub id: i32,
+    /// Printed side length, metres.
+    pub side_m: f64,
+    /// Detected corners (rectified pixels) in ArUco's order: top-left, top-right, bottom-right,
+    /// bottom-left.
+    pub corners: [Vector2<f64>; 4],
+    /// The detector's pose, when it is trustworthy (see [`MarkerSighting::from_detection`]);
+    /// a marker is only mapped, and a lost robot only placed, from one.
+    pub camera_from_marker: Option<Se3>,
+}
+
+impl MarkerSighting {
+    /// A detection and the detector's pose of it. The pose is kept only when the depth image
+    /// agreed with its distance and its corners reproject within [`MAX_POSE_REPROJECTION_PX`]:
+    /// a small marker's corners alone fix its distance poorly.
+    pub fn from_detection(
+        detection: &Detection,
+        side_m: f64,
+        estimate: Option<&MarkerPoseEstimate>,
+    ) -> Self {
+        Self {
+            id: detection.id,
+            side_m,
+            corners: detection
+                .corners
+                .map(|[x, y]| Vector2::new(f64::from(x), f64::from(y))),
+            camera_from_marker: estimate
+                .filter(|e| e.used_depth && e.reprojection_error_px <= MAX_POSE_REPROJECTION_PX)
+                .map(|e| {
+                    Se3::new(
+                        e.camera_from_marker.rotation,
+                        e.camera_from_marker.translation.vector,
+                    )
+                }),
+        }
+    }
+}
+
+/// A mapped marker.
+#[derive(Clone, Debug, PartialEq)]
+pub struct MapMarker {
+    pub id: i32,
+    pub side_m: f64,
+    pub world_from_marker: Se3,
+    /// Keyframes that saw it, with the index of the sighting in the keyframe's frame.
+    pub observations: Vec<(KeyFrameId, usize)>,
+}
+
+impl MapMarker {
+    /// Its corners in the world, in sighting order.
+    pub fn corners_in_world(&self) -> [nalgebra::Vector3<f64>; 4] {
+        marker_corners(self.side_m).map(|c| self.world_from_marker.transform_point(&c))
+    }
+}
+
+/// Largest RMS corner reprojection error of a detector pose that maps a marker, pixels.
+pub const MAX_POSE_REPROJECTION_PX: f64 = 1.0;
+/// Farthest a marker may be to be mapped from a detector pose, metres: farther, it is too few
+/// pixels wide for its orientation to be known.
+pub const MAX_MAPPING_DISTANCE_M: f64 = 2.5;
+/// Largest angle between a marker's normal and its direction to the camera for its detector
+/// pose to map it, degrees. Seen obliquely, a square's pose has two nearly equal solutions, and
+/// the wrong one (measured: 140° off, behind its wall) would become the landmark.
+pub const MAX_MAPPING_VIEW_ANGLE_DEG: f64 = 60.0;
+
+/// Whether a detector pose is good enough to map a marker or place a camera: near enough, and
+/// seen from in front.
+pub fn is_mappable(camera_from_marker: &Se3) -> bool {
+    let to_camera = -camera_from_marker.translation;
+    let distance = to_camera.norm();
+    let normal = camera_from_marker.rotation * nalgebra::Vector3::z();
+    distance <= MAX_MAPPING_DISTANCE_M
+        && normal.dot(&to_camera) >= distance * MAX_MAPPING_VIEW_ANGLE_DEG.to_radians().cos()
+}
+
+/// Corner information for tracking and bundle adjustment: ArUco's corners are refined to
+/// subpixel precision, about as good as a keypoint at the finest pyramid level.
+pub const CORNER_INFORMATION: f64 = 1.0;
+
+/// Pose observations of the mapped markers among `sightings` (four corners each), for
+/// pose-only optimisation.
+pub fn corner_observations(map: &Map, sightings: &[MarkerSighting]) -> Vec<PoseObservation> {
+    let mut observations = Vec::new();
+    for sighting in sightings {
+        let Some(marker) = map.markers.get(&sighting.id) else {
+            continue;
+        };
+        if marker.side_m != sighting.side_m {
+            continue;
+        }
+        for (corner, measured) in marker.corners_in_world().iter().zip(&sighting.corners) {
+            observations.push(PoseObservation {
+                point_in_world: *corner,
+                measured: Measurement::Mono(*measured),
+                information: CORNER_INFORMATION,
+            });
+        }
+    }
+    observations
+}
+
+/// Records keyframe `k`'s sightings: a mapped marker gains the observation, an unmapped one
+/// with a detector pose joins the map. Returns the ids of the markers it added.
+pub fn add_sightings(map: &mut Map, k: KeyFrameId) -> Vec<i32> {
+    let world_from_camera = map.keyframe(k).world_from_camera;
+    let sightings = map.keyframe(k).frame.markers.clone();
+    let mut added = Vec::new();
+    for (index, sighting) in sightings.iter().enumerate() {
+        match map.markers.get_mut(&sighting.id) {
+            Some(marker) if marker.side_m == sighting.side_m => {
+                marker.observations.push((k, index));
+            }
+            Some(_) => {
+                tracing::debug!(
+                    id = sighting.id,
+                    "marker seen with another side length than mapped; ignored"
+                );
+            }
+            None => {
+                if let Some(camera_from_marker) = sighting.camera_from_marker.filter(is_mappable) {
+                    map.markers.insert(
+                        sighting.id,
+                        MapMarker {
+                            id: sighting.id,
+                            side_m: sighting.side_m,
+                            world_from_marker: world_from_camera.compose(&camera_from_marker),
+                            observations: vec![(k, index)],
+                        },
+                    );
+                    added.push(sighting.id);
+                }
+            }
+        }
+    }
+    added
+}
+
+/// A pose for a frame that sees a mapped marker with a detector pose: the marker's map pose
+/// times the inverse of what the detector measured, from the nearest such marker (nearer
+/// markers give better detector poses). `None` when no sighting qualifies.
+pub fn pose_from_markers(map: &Map, sightings: &[MarkerSighting]) -> Option<(i32, Se3)> {
+    sightings
+        .iter()
+        .filter_map(|s| {
+            let camera_from_marker = s.camera_from_marker.filter(is_mappable)?;
+            let marker = map.markers.get(&s.id)?;
+            (marker.side_m == s.side_m).then_some((s.id, marker, camera_from_marker))
+        })
+        .min_by(|a, b| {
+            a.2.translation
+                .norm()
+                .total_cmp(&b.2.translation.norm())
+                .then(a.0.cmp(&b.0))
+        })
+        .map(|(id, marker, camera_from_marker)| {
+            (
+                id,
+                marker
+                    .world_from_marker
+                    .compose(&camera_from_marker.inverse()),
+            )
+        })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::frame::tests::rig;
+    use crate::frame::Frame;
+    use nalgebra::{UnitQuaternion, Vector3};
+    use vsgraphs_sgraph::pose_only::chi2;
+
+    fn sighting(world_from_camera: &Se3, world_from_marker: &Se3, id: i32) -> MarkerSighting {
+        let camera = rig().camera;
+        let camera_from_marker = world_from_camera.inverse().compose(world_from_marker);
+        let corners = marker_corners(0.2).map(|c| {
+            let p = camera_from_marker.transform_point(&c);
+            camera.project(&p)
+        });
+        MarkerSighting {
+            id,
+            side_m: 0.2,
+            corners,
+            camera_from_marker: Some(camera_from_marker),
+        }
+    }
+
+    fn keyframe_with(map: &mut Map, pose: Se3, sightings: Vec<MarkerSighting>) -> KeyFrameId {
+        let mut frame = Frame::from_parts(0, Vec::new(), Vec::new(), &rig());
+        frame.markers = sightings;
+        map.add_keyframe(frame, pose)
+    }
+
+    #[test]
+    fn a_marker_is_mapped_once_and_then_observed() {
+        let marker = Se3::new(
+            UnitQuaternion::from_euler_angles(0.0, std::f64::consts::PI, 0.1),
+            Vector3::new(0.3, -0.1, 2.0),
+        );
+        let first = Se3::new(
+            UnitQuaternion::from_euler_angles(0.02, -0.1, 0.0),
+            Vector3::new(0.1, 0.0, 0.0),
+        );
+        let second = Se3::new(UnitQuaternion::identity(), Vector3::new(-0.2, 0.05, 0.1));
+        let mut map = Map::default();
+        let a = keyframe_with(&mut map, first, vec![sighting(&first, &marker, 7)]);
+        assert_eq!(add_sightings(&mut map, a), vec![7]);
+        let b = keyframe_with(&mut map, second, vec![sighting(&second, &marker, 7)]);
+        assert!(add_sightings(&mut map, b).is_empty());
+        let mapped = &map.markers[&7];
+        assert_eq!(mapped.observations, vec![(a, 0), (b, 0)]);
+        assert!(marker.local(&mapped.world_from_marker).norm() < 1e-12);
+        // The corner observations of the second frame are explained by its true pose.
+        let observations = corner_observations(&map, &[sighting(&second, &marker, 7)]);
+        assert_eq!(observations.len(), 4);
+        for o in &observations {
+            assert!(chi2(&rig().camera, rig().bf, &second, o) < 1e-12);
+        }
+    }
+
+    #[test]
+    fn the_pose_from_a_mapped_marker_is_the_camera_pose() {
+        let marker = Se3::new(
+            UnitQuaternion::from_euler_angles(0.1, 3.0, 0.0),
+            Vector3::new(0.5, 0.0, 2.0),
+        );
+        let pose = Se3::new(
+            UnitQuaternion::from_euler_angles(0.0, 0.3, 0.05),
+            Vector3::new(0.4, 0.1, -0.3),
+        );
+        let mut map = Map::default();
+        let k = keyframe_with(
+            &mut map,
+            Se3::identity(),
+            vec![sighting(&Se3::identity(), &marker, 3)],
+        );
+        add_sightings(&mut map, k);
+        let seen = [sighting(&pose, &marker, 3)];
+        let (id, found) = pose_from_markers(&map, &seen).unwrap();
+        assert_eq!(id, 3);
+        assert!(pose.local(&found).norm() < 1e-12);
+        // An unmapped id or another size gives nothing.
+        let mut other = seen.clone();
+        other[0].id = 4;
+        assert!(pose_from_markers(&map, &other).is_none());
+        other[0].id = 3;
+        other[0].side_m = 0.1;
+        assert!(pose_from_markers(&map, &other).is_none());
+    }
+
+    #[test]
+    fn only_near_frontal_detector_poses_map_markers() {
+        let facing = |angle_deg: f64, distance: f64| {
+            // The marker straight ahead, its normal turned `angle_deg` away from the camera.
+            let rotation = UnitQuaternion::from_euler_angles(
+                0.0,
+                std::f64::consts::PI + angle_deg.to_radians(),
+                0.0,
+            );
+            is_mappable(&Se3::new(rotation, Vector3::new(0.0, 0.0, distance)))
+        };
+        assert!(facing(0.0, 1.0));
+        assert!(facing(55.0, 2.0));
+        assert!(!facing(65.0, 1.0), "too oblique");
+        assert!(!facing(0.0, 3.0), "too far");
+        assert!(!facing(180.0, 1.0), "seen from behind");
+    }
+}
