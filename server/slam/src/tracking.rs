@@ -9,9 +9,12 @@
 //!    neighbours) is projected and matched, and the pose optimised again;
 //! 4. a keyframe is made when the frame tracks clearly fewer points than its reference keyframe
 //!    or sees many close points the map lacks, and local mapping runs on it;
-//! 5. when tracking fails the robot is lost: each frame tries to relocalise against keyframes
-//!    (descriptor matches, a three-point RANSAC on the matches' depths, pose optimisation, the
-//!    local map); after `new_map_after_s` without success a new map starts in the Atlas.
+//! 5. when tracking fails the robot is lost: each frame tries to relocalise, from a mapped
+//!    marker in view if there is one, else against keyframes (descriptor matches, a three-point
+//!    RANSAC on the matches' depths, pose optimisation, the local map); after
+//!    `new_map_after_s` without success a new map starts in the Atlas.
+//!
+//! Mapped markers in view add their corners to every pose optimisation; see [`crate::markers`].
 
 use crate::frame::{Descriptor, Frame, Rig};
 use crate::map::{Atlas, KeyFrameId, Map, MapPointId};
