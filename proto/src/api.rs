@@ -160,6 +160,9 @@ pub struct TrackingStatus {
     pub features_ms_mean: Option<f64>,
     pub tracking_ms_mean: Option<f64>,
     pub mapping_ms_mean: Option<f64>,
+    /// Mean local bundle adjustment solve time per frame, ms (on its own thread).
+    #[serde(default)]
+    pub local_ba_ms_mean: Option<f64>,
 }
 
 /// A keyframe of a map, in `GET /api/v1/robots/{robot_id}/maps/{map}`.

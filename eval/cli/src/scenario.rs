@@ -54,7 +54,7 @@ pub struct ScenarioRun {
     /// Tracking events with the frame's time, seconds.
     pub events: Vec<(f64, String)>,
     /// Median ms per frame: whole pipeline, decoding, markers, ORB features, tracking; and mean
-    /// mapping ms per frame.
+    /// mapping and local BA ms per frame.
     pub median_ms: StageMedians,
     /// ATE of the map the run ends in, SE(3)-aligned; `None` when fewer than 3 poses.
     pub ate: Option<Report>,
@@ -80,6 +80,8 @@ pub struct StageMedians {
     pub features: f64,
     pub tracking: f64,
     pub mapping_mean: f64,
+    /// Mean local BA solve time per frame, on its own thread.
+    pub local_ba_mean: f64,
 }
 
 /// Renders and runs one robot of `scenario`; `progress(done, total)` after every frame.
@@ -193,6 +195,7 @@ fn medians(s: &OfflineSummary) -> StageMedians {
         features: offline::median(&s.features_ms),
         tracking: offline::median(&s.tracking_ms),
         mapping_mean: s.mapping_ms.iter().sum::<f64>() / s.mapping_ms.len().max(1) as f64,
+        local_ba_mean: s.local_ba_ms.iter().sum::<f64>() / s.local_ba_ms.len().max(1) as f64,
     }
 }
 
@@ -206,8 +209,8 @@ pub fn print_table(run: &ScenarioRun) {
     }
     let m = &run.median_ms;
     println!(
-        "median ms per frame: pipeline {:.2} (decode {:.2}, markers {:.2}, features {:.2}, tracking {:.2}); mapping mean {:.2}",
-        m.pipeline, m.decode, m.markers, m.features, m.tracking, m.mapping_mean
+        "median ms per frame: pipeline {:.2} (decode {:.2}, markers {:.2}, features {:.2}, tracking {:.2}); means: mapping {:.2}, local BA {:.2} (own thread)",
+        m.pipeline, m.decode, m.markers, m.features, m.tracking, m.mapping_mean, m.local_ba_mean
     );
     println!();
     match &run.ate {

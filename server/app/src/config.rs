@@ -112,6 +112,7 @@ pub struct TrackingConfig {
     pub local_ba_iterations: usize,
     pub new_map_after_s: f64,
     pub marker_landmarks: bool,
+    pub background_ba: bool,
 }
 
 impl Default for TrackingConfig {
@@ -125,6 +126,7 @@ impl Default for TrackingConfig {
             local_ba_iterations: slam.local_ba_iterations,
             new_map_after_s: slam.new_map_after_s,
             marker_landmarks: slam.marker_landmarks,
+            background_ba: slam.background_ba,
         }
     }
 }
@@ -139,6 +141,7 @@ impl TrackingConfig {
         config.local_ba_iterations = self.local_ba_iterations;
         config.new_map_after_s = self.new_map_after_s;
         config.marker_landmarks = self.marker_landmarks;
+        config.background_ba = self.background_ba;
         config
     }
 }

@@ -157,14 +157,15 @@ fn print_offline(s: &vsgraphs_server::offline::OfflineSummary) {
         s.maps, s.keyframes, s.map_points, s.markers
     );
     println!(
-        "median ms per frame: pipeline {:.2} (decode {:.2}, markers {:.2}, features {:.2}, tracking {:.2}, mapping {:.2}); mapping mean {:.2}",
+        "median ms per frame: pipeline {:.2} (decode {:.2}, markers {:.2}, features {:.2}, tracking {:.2}, mapping {:.2}); means: mapping {:.2}, local BA {:.2} (own thread)",
         median(&s.pipeline_ms),
         median(&s.decode_ms),
         median(&s.detection_ms),
         median(&s.features_ms),
         median(&s.tracking_ms),
         median(&s.mapping_ms),
-        s.mapping_ms.iter().sum::<f64>() / s.mapping_ms.len().max(1) as f64
+        s.mapping_ms.iter().sum::<f64>() / s.mapping_ms.len().max(1) as f64,
+        s.local_ba_ms.iter().sum::<f64>() / s.local_ba_ms.len().max(1) as f64
     );
 }
 

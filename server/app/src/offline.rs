@@ -39,6 +39,7 @@ pub struct OfflineSummary {
     pub features_ms: Vec<f64>,
     pub tracking_ms: Vec<f64>,
     pub mapping_ms: Vec<f64>,
+    pub local_ba_ms: Vec<f64>,
     pub elapsed: Duration,
 }
 
@@ -169,6 +170,7 @@ pub fn run_frames(
                 summary.features_ms.push(ms(r.times.features));
                 summary.tracking_ms.push(ms(r.times.tracking));
                 summary.mapping_ms.push(ms(r.times.mapping));
+                summary.local_ba_ms.push(ms(r.times.local_ba));
                 if let Some(event) = &r.event {
                     summary
                         .events
@@ -195,6 +197,7 @@ pub fn run_frames(
         }
         progress(summary.frames, total);
     }
+    processor.flush_tracking()?;
     if let Some(tracker) = processor.tracker() {
         let end_ns = previous.as_ref().map_or(0, |p| p.timestamp_ns);
         summary.map_views = tracker

@@ -49,8 +49,8 @@ struct RobotState {
     recent: VecDeque<Recent>,
     /// Tracking as of the latest frame (its timing fields are filled in by `status`).
     tracking: Option<TrackingStatus>,
-    /// (when, features ms, tracking ms, mapping ms) of recently tracked frames.
-    tracking_recent: VecDeque<(Instant, f64, f64, f64)>,
+    /// (when, features ms, tracking ms, mapping ms, local BA ms) of recently tracked frames.
+    tracking_recent: VecDeque<(Instant, f64, f64, f64, f64)>,
     /// Every tracked pose (72 bytes each: an hour at 30 Hz is under 8 MB).
     trajectory: Vec<TrajectoryPose>,
     /// The latest snapshot of each map of the robot's Atlas, by index.
@@ -156,6 +156,7 @@ impl RobotEntry {
             features_ms_mean: None,
             tracking_ms_mean: None,
             mapping_ms_mean: None,
+            local_ba_ms_mean: None,
         });
         status.state = tracking.state;
         status.maps = tracking.maps as u32;
@@ -183,6 +184,7 @@ impl RobotEntry {
                     ms(result.times.features),
                     ms(result.times.tracking),
                     ms(result.times.mapping),
+                    ms(result.times.local_ba),
                 ));
                 while state
                     .tracking_recent
@@ -285,13 +287,14 @@ impl RobotEntry {
                     .iter()
                     .filter(|(at, ..)| now.duration_since(*at) <= TIMING_WINDOW)
                     .collect();
-                let mean = |f: fn(&(Instant, f64, f64, f64)) -> f64| {
+                let mean = |f: fn(&(Instant, f64, f64, f64, f64)) -> f64| {
                     (!recent.is_empty())
                         .then(|| recent.iter().map(|r| f(r)).sum::<f64>() / recent.len() as f64)
                 };
                 t.features_ms_mean = mean(|r| r.1);
                 t.tracking_ms_mean = mean(|r| r.2);
                 t.mapping_ms_mean = mean(|r| r.3);
+                t.local_ba_ms_mean = mean(|r| r.4);
                 t
             }),
         }

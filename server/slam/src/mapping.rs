@@ -280,6 +280,69 @@ pub fn local_bundle_adjustment(
     keyframe: KeyFrameId,
     iterations: usize,
 ) -> Result<LocalBaReport, vsgraphs_sgraph::SolveError> {
+    let solved = prepare_local_ba(map, rig, keyframe, iterations).solve();
+    apply_local_ba(map, rig, solved)
+}
+
+/// A local bundle adjustment built from the map and ready to solve anywhere (it is `Send`
+/// and holds no reference to the map), with what is needed to write its result back.
+pub struct LocalBaJob {
+    problem: Problem,
+    iterations: usize,
+    parts: BaParts,
+}
+
+/// The map's side of a local BA: which variables stand for which keyframes, points, markers.
+struct BaParts {
+    window: Vec<KeyFrameId>,
+    pose_keys: HashMap<KeyFrameId, Key<Se3>>,
+    points: Vec<MapPointId>,
+    point_keys: Vec<Key<Vector3<f64>>>,
+    marker_keys: Vec<(i32, Key<Se3>)>,
+    observed: Vec<(MapPointId, KeyFrameId, usize)>,
+    fixed_keyframes: usize,
+}
+
+/// A solved (or failed) local BA, to apply to the map it was built from.
+pub struct SolvedLocalBa {
+    result: Result<(Values, vsgraphs_sgraph::Report), vsgraphs_sgraph::SolveError>,
+    parts: BaParts,
+    /// Time the solve took, wherever it ran.
+    pub solve_time: std::time::Duration,
+}
+
+impl LocalBaJob {
+    /// Runs Levenberg–Marquardt (one thread).
+    pub fn solve(self) -> SolvedLocalBa {
+        let started = std::time::Instant::now();
+        let LocalBaJob {
+            mut problem,
+            iterations,
+            parts,
+        } = self;
+        let mut solver = Solver::new(Options {
+            max_iterations: iterations,
+            threads: 1,
+            ..Options::default()
+        });
+        let result = solver
+            .solve(&mut problem)
+            .map(|report| (problem.into_values(), report));
+        SolvedLocalBa {
+            result,
+            parts,
+            solve_time: started.elapsed(),
+        }
+    }
+}
+
+/// Builds the local BA of `keyframe` (see [`local_bundle_adjustment`]).
+pub fn prepare_local_ba(
+    map: &Map,
+    rig: &Rig,
+    keyframe: KeyFrameId,
+    iterations: usize,
+) -> LocalBaJob {
     let mut window: Vec<KeyFrameId> = vec![keyframe];
     window.extend(
         map.covisible(keyframe)
@@ -402,13 +465,39 @@ pub fn local_bundle_adjustment(
             )
             .expect("keys made above");
     }
-    let mut solver = Solver::new(Options {
-        max_iterations: iterations,
-        threads: 1,
-        ..Options::default()
-    });
-    let report = solver.solve(&mut problem)?;
-    let values = problem.into_values();
+    LocalBaJob {
+        problem,
+        iterations,
+        parts: BaParts {
+            window,
+            pose_keys,
+            points,
+            point_keys,
+            marker_keys,
+            observed,
+            fixed_keyframes,
+        },
+    }
+}
+
+/// Writes a solved local BA back into the map it was built from (which must not have gained
+/// or lost keyframes, points or observations since), then drops the observations the adjusted
+/// map does not explain. A failed solve leaves the map as it was.
+pub fn apply_local_ba(
+    map: &mut Map,
+    rig: &Rig,
+    solved: SolvedLocalBa,
+) -> Result<LocalBaReport, vsgraphs_sgraph::SolveError> {
+    let (values, report) = solved.result?;
+    let BaParts {
+        window,
+        pose_keys,
+        points,
+        point_keys,
+        marker_keys,
+        observed,
+        fixed_keyframes,
+    } = solved.parts;
     for &k in &window {
         if let Some(key) = pose_keys.get(&k) {
             map.keyframe_mut(k).world_from_camera = *values.get(*key);

@@ -18,11 +18,12 @@
 
 use crate::frame::{Descriptor, Frame, Rig};
 use crate::map::{Atlas, KeyFrameId, Map, MapPointId};
-use crate::mapping;
+use crate::mapping::{self, LocalBaJob, SolvedLocalBa};
 use crate::markers::{self, MarkerSighting};
 use crate::matcher::{self, Projected, SearchOptions, TH_HIGH};
 use nalgebra::{Matrix3, Vector2, Vector3};
 use std::collections::{HashMap, HashSet};
+use std::sync::mpsc;
 use std::time::{Duration, Instant};
 use thiserror::Error;
 use vsgraphs_sgraph::pose_only::{
@@ -56,6 +57,9 @@ pub struct TrackerConfig {
     pub relocalisation_candidates: usize,
     /// Map markers as landmarks and use them in tracking and relocalisation.
     pub marker_landmarks: bool,
+    /// Solve each keyframe's local BA on a thread of its own while tracking goes on; its result
+    /// is applied before the next keyframe is inserted, so poses do not depend on timing.
+    pub background_ba: bool,
 }
 
 impl Default for TrackerConfig {
@@ -71,6 +75,9 @@ impl Default for TrackerConfig {
             new_map_after_s: 3.0,
             relocalisation_candidates: 4,
             marker_landmarks: true,
+            // Off until it tracks seq06 through: with it, 7-Scenes improves (0.028 → 0.025 m)
+            // but seq06 loses track at 79.7 s (ARCHITECTURE.md, "Tracking").
+            background_ba: false,
         }
     }
 }
@@ -100,7 +107,12 @@ impl TrackingState {
 pub struct StageTimes {
     pub features: Duration,
     pub tracking: Duration,
+    /// Keyframe insertion, fusion, culling and building the local BA (on this thread),
+    /// including any wait for the previous keyframe's BA.
     pub mapping: Duration,
+    /// Solve time of the local BA applied during this frame (on the BA thread when
+    /// `background_ba`).
+    pub local_ba: Duration,
 }
 
 /// What happened to one frame.
@@ -129,6 +141,32 @@ pub enum TrackError {
     Features(#[from] CvError),
     #[error("local bundle adjustment failed: {0}")]
     LocalBa(#[from] vsgraphs_sgraph::SolveError),
+    #[error("the local bundle adjustment thread stopped")]
+    BaThreadStopped,
+}
+
+/// The thread that solves local bundle adjustments for one tracker.
+struct BaWorker {
+    jobs: mpsc::Sender<LocalBaJob>,
+    results: mpsc::Receiver<SolvedLocalBa>,
+}
+
+impl BaWorker {
+    fn spawn() -> std::io::Result<Self> {
+        let (jobs, job_receiver) = mpsc::channel::<LocalBaJob>();
+        let (result_sender, results) = mpsc::channel();
+        let name = std::thread::current()
+            .name()
+            .map_or_else(|| "local-ba".to_owned(), |n| format!("{n}-ba"));
+        std::thread::Builder::new().name(name).spawn(move || {
+            for job in job_receiver {
+                if result_sender.send(job.solve()).is_err() {
+                    return;
+                }
+            }
+        })?;
+        Ok(Self { jobs, results })
+    }
 }
 
 /// The previous frame, as the next one is tracked against it.
@@ -171,6 +209,11 @@ pub struct Tracker {
     relocalised_ns: Option<u64>,
     /// Next keyframe to try when relocalising (round-robin).
     relocalisation_cursor: usize,
+    ba_worker: Option<BaWorker>,
+    /// A local BA being solved in the background: the Atlas index of its map and its keyframe.
+    pending_ba: Option<(usize, KeyFrameId)>,
+    /// Solve time of the local BA applied during the current frame.
+    applied_ba: Duration,
 }
 
 impl Tracker {
@@ -189,7 +232,72 @@ impl Tracker {
             lost_since_ns: None,
             relocalised_ns: None,
             relocalisation_cursor: 0,
+            ba_worker: None,
+            pending_ba: None,
+            applied_ba: Duration::ZERO,
         })
+    }
+
+    /// Applies the local BA still being solved, if any (waiting for it): call before reading
+    /// the map when no more frames follow.
+    pub fn flush(&mut self) -> Result<(), TrackError> {
+        self.finish_local_ba()
+    }
+
+    /// Waits for the pending local BA and applies it to its map (unless that map is no longer
+    /// the active one, as after a new map started).
+    fn finish_local_ba(&mut self) -> Result<(), TrackError> {
+        let Some((map_index, keyframe)) = self.pending_ba.take() else {
+            return Ok(());
+        };
+        let worker = self.ba_worker.as_ref().ok_or(TrackError::BaThreadStopped)?;
+        let Ok(solved) = worker.results.recv() else {
+            // The thread died (a panic in the solver): the next keyframe starts another.
+            self.ba_worker = None;
+            return Err(TrackError::BaThreadStopped);
+        };
+        self.applied_ba += solved.solve_time;
+        if self.atlas.active_index() != Some(map_index) {
+            return Ok(());
+        }
+        let rig = self.rig.clone().expect("a rig while mapping");
+        let before = self.map().keyframe(keyframe).world_from_camera;
+        let report = mapping::apply_local_ba(self.map_mut(), &rig, solved)?;
+        tracing::trace!(?report, "local bundle adjustment");
+        // The last frame was tracked against the map before the adjustment: move it with its
+        // keyframe, so that the motion model predicts into the adjusted map.
+        let after = self.map().keyframe(keyframe).world_from_camera;
+        if let Some(last) = &mut self.last {
+            let correction = after.compose(&before.inverse());
+            last.world_from_camera = correction.compose(&last.world_from_camera);
+        }
+        Ok(())
+    }
+
+    /// Solves `job` on the BA thread (started on first use), or here when that is off.
+    fn start_local_ba(
+        &mut self,
+        job: LocalBaJob,
+        keyframe: KeyFrameId,
+        rig: &Rig,
+    ) -> Result<(), TrackError> {
+        if !self.config.background_ba {
+            let solved = job.solve();
+            self.applied_ba += solved.solve_time;
+            let report = mapping::apply_local_ba(self.map_mut(), rig, solved)?;
+            tracing::trace!(?report, "local bundle adjustment");
+            return Ok(());
+        }
+        if self.ba_worker.is_none() {
+            self.ba_worker = Some(BaWorker::spawn().map_err(|_| TrackError::BaThreadStopped)?);
+        }
+        let worker = self.ba_worker.as_ref().expect("spawned above");
+        if worker.jobs.send(job).is_err() {
+            self.ba_worker = None;
+            return Err(TrackError::BaThreadStopped);
+        }
+        self.pending_ba = self.atlas.active_index().map(|m| (m, keyframe));
+        Ok(())
     }
 
     pub fn state(&self) -> TrackingState {
@@ -326,6 +434,7 @@ impl Tracker {
             result.keyframe = keyframe;
             times.mapping = mapping_started.elapsed();
         }
+        times.local_ba = std::mem::take(&mut self.applied_ba);
         result.state = self.state;
         result.times = times;
         if result.world_from_camera.is_some() || self.state != TrackingState::Initialising {
@@ -335,6 +444,10 @@ impl Tracker {
     }
 
     fn start_new_map(&mut self) {
+        // The old map's pending BA is applied, so that it is left consistent in the Atlas.
+        if let Err(e) = self.finish_local_ba() {
+            tracing::warn!(error = %e, "the last local BA of a map was lost");
+        }
         self.state = TrackingState::Initialising;
         self.last = None;
         self.velocity = None;
@@ -821,6 +934,9 @@ impl Tracker {
         let mut keyframe = None;
         let mut last_points = tracked.points.clone();
         if self.needs_keyframe(&frame, rig, &tracked) {
+            // The previous keyframe's BA lands first: insertion, fusion and culling change the
+            // map it was built from.
+            self.finish_local_ba()?;
             let (k, created) = mapping::insert_keyframe(
                 self.map_mut(),
                 rig,
@@ -837,13 +953,13 @@ impl Tracker {
             let mut recent = std::mem::take(&mut self.recent_points);
             mapping::cull_recent_points(self.map_mut(), &mut recent, k);
             self.recent_points = recent;
+            self.map_mut().refresh_neighbours(k);
             if self.config.local_ba_iterations > 0 {
                 let iterations = self.config.local_ba_iterations;
-                let report = mapping::local_bundle_adjustment(self.map_mut(), rig, k, iterations)?;
-                tracing::trace!(?report, "local bundle adjustment");
+                let job = mapping::prepare_local_ba(self.map(), rig, k, iterations);
+                self.start_local_ba(job, k, rig)?;
                 world_from_camera = self.map().keyframe(k).world_from_camera;
             }
-            self.map_mut().refresh_neighbours(k);
             last_points = self.map().keyframe(k).points.clone();
             self.reference = Some(k);
             keyframe = Some(k);
