@@ -75,8 +75,8 @@ impl Default for TrackerConfig {
             new_map_after_s: 3.0,
             relocalisation_candidates: 4,
             marker_landmarks: true,
-            // Off until it tracks seq06 through: with it, 7-Scenes improves (0.028 → 0.025 m)
-            // but seq06 loses track at 79.7 s (ARCHITECTURE.md, "Tracking").
+            // Off until it is as accurate: 7-Scenes 0.026 m with it (inline 0.028 m), but seq06
+            // 0.050 m (inline 0.038 m); ARCHITECTURE.md, "Tracking".
             background_ba: false,
         }
     }
@@ -241,14 +241,15 @@ impl Tracker {
     /// Applies the local BA still being solved, if any (waiting for it): call before reading
     /// the map when no more frames follow.
     pub fn flush(&mut self) -> Result<(), TrackError> {
-        self.finish_local_ba()
+        self.finish_local_ba().map(|_| ())
     }
 
     /// Waits for the pending local BA and applies it to its map (unless that map is no longer
-    /// the active one, as after a new map started).
-    fn finish_local_ba(&mut self) -> Result<(), TrackError> {
+    /// the active one, as after a new map started). Returns how its keyframe moved
+    /// (`after · before⁻¹`): poses tracked against the map before it move the same way.
+    fn finish_local_ba(&mut self) -> Result<Option<Se3>, TrackError> {
         let Some((map_index, keyframe)) = self.pending_ba.take() else {
-            return Ok(());
+            return Ok(None);
         };
         let worker = self.ba_worker.as_ref().ok_or(TrackError::BaThreadStopped)?;
         let Ok(solved) = worker.results.recv() else {
@@ -258,7 +259,7 @@ impl Tracker {
         };
         self.applied_ba += solved.solve_time;
         if self.atlas.active_index() != Some(map_index) {
-            return Ok(());
+            return Ok(None);
         }
         let rig = self.rig.clone().expect("a rig while mapping");
         let before = self.map().keyframe(keyframe).world_from_camera;
@@ -266,12 +267,15 @@ impl Tracker {
         tracing::trace!(?report, "local bundle adjustment");
         // The last frame was tracked against the map before the adjustment: move it with its
         // keyframe, so that the motion model predicts into the adjusted map.
-        let after = self.map().keyframe(keyframe).world_from_camera;
+        let correction = self
+            .map()
+            .keyframe(keyframe)
+            .world_from_camera
+            .compose(&before.inverse());
         if let Some(last) = &mut self.last {
-            let correction = after.compose(&before.inverse());
             last.world_from_camera = correction.compose(&last.world_from_camera);
         }
-        Ok(())
+        Ok(Some(correction))
     }
 
     /// Solves `job` on the BA thread (started on first use), or here when that is off.
@@ -936,14 +940,13 @@ impl Tracker {
         if self.needs_keyframe(&frame, rig, &tracked) {
             // The previous keyframe's BA lands first: insertion, fusion and culling change the
             // map it was built from.
-            self.finish_local_ba()?;
-            let (k, created) = mapping::insert_keyframe(
-                self.map_mut(),
-                rig,
-                frame.clone(),
-                tracked.world_from_camera,
-                &tracked.points,
-            );
+            // The frame was tracked against the map before that BA: it moves with it.
+            let pose = match self.finish_local_ba()? {
+                Some(correction) => correction.compose(&tracked.world_from_camera),
+                None => tracked.world_from_camera,
+            };
+            let (k, created) =
+                mapping::insert_keyframe(self.map_mut(), rig, frame.clone(), pose, &tracked.points);
             self.recent_points.extend(created);
             let added = markers::add_sightings(self.map_mut(), k);
             if !added.is_empty() {
