@@ -146,7 +146,7 @@ enum Command {
     /// server's pipeline (decoding, markers, tracking, mapping) without the network, and print
     /// both scores: ATE against the walk, and the map's model against the building.
     Scenario {
-        /// seq01 … seq06, two-robots, or a scenario JSON file.
+        /// seq01 … seq06, two_robots, or a scenario JSON file.
         scenario: String,
         /// Which robot's walk (index into the scenario's routes).
         #[arg(long, default_value_t = 0)]

@@ -255,12 +255,7 @@ async fn list_maps(
     let maps = robot
         .maps()
         .iter()
-        .map(|view| MapView {
-            keyframes: Vec::new(),
-            points: Vec::new(),
-            markers: Vec::new(),
-            ..(**view).clone()
-        })
+        .map(|view| crate::model::trimmed(view, 0, false))
         .collect();
     Ok(Json(maps))
 }
@@ -308,10 +303,8 @@ async fn get_map(
     Query(query): Query<MapQuery>,
 ) -> Result<Json<MapView>, Failure> {
     let view = find_map(&registry, &robot_id, map)?;
-    let mut view = (*view).clone();
     let at_most = query.max_points.unwrap_or(DEFAULT_MAP_POINTS);
-    view.points = crate::model::decimate(view.points, at_most);
-    Ok(Json(view))
+    Ok(Json(crate::model::trimmed(&view, at_most, true)))
 }
 
 /// One map as a building model (the JSON `vsgraphs-eval semantics` scores): its markers so far.

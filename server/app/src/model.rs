@@ -44,7 +44,7 @@ pub fn map_view(map: &Map, index: usize, updated_ns: u64) -> MapView {
                 world_from_camera: api_pose(&k.world_from_camera),
             })
             .collect(),
-        points: decimate(live, SNAPSHOT_POINTS),
+        points: decimate(&live, SNAPSHOT_POINTS),
         markers: map
             .markers
             .values()
@@ -59,12 +59,39 @@ pub fn map_view(map: &Map, index: usize, updated_ns: u64) -> MapView {
 }
 
 /// Every `⌈n / at_most⌉`-th item, so that at most `at_most` remain, spread over the whole list.
-pub fn decimate<T>(items: Vec<T>, at_most: usize) -> Vec<T> {
-    if items.len() <= at_most {
-        return items;
+pub fn decimate<T: Clone>(items: &[T], at_most: usize) -> Vec<T> {
+    if at_most == 0 {
+        return Vec::new();
     }
-    let stride = items.len().div_ceil(at_most.max(1));
-    items.into_iter().step_by(stride).collect()
+    let stride = items.len().div_ceil(at_most).max(1);
+    items.iter().step_by(stride).cloned().collect()
+}
+
+/// A snapshot with its points thinned to at most `max_points` and, unless `lists`, without
+/// keyframes, points or markers (the list of maps shows counts only). Copies no list it drops.
+pub fn trimmed(view: &MapView, max_points: usize, lists: bool) -> MapView {
+    MapView {
+        map: view.map,
+        updated_ns: view.updated_ns,
+        keyframe_count: view.keyframe_count,
+        point_count: view.point_count,
+        marker_count: view.marker_count,
+        keyframes: if lists {
+            view.keyframes.clone()
+        } else {
+            Vec::new()
+        },
+        points: if lists {
+            decimate(&view.points, max_points)
+        } else {
+            Vec::new()
+        },
+        markers: if lists {
+            view.markers.clone()
+        } else {
+            Vec::new()
+        },
+    }
 }
 
 /// The building model of a map: its marker landmarks (the only layer mapped so far).
@@ -91,9 +118,11 @@ mod tests {
 
     #[test]
     fn decimation_keeps_at_most_the_limit_spread_evenly() {
-        let kept = decimate((0..10).collect(), 4);
-        assert_eq!(kept, vec![0, 3, 6, 9]);
-        assert_eq!(decimate((0..3).collect::<Vec<i32>>(), 4), vec![0, 1, 2]);
-        assert_eq!(decimate((0..100).collect::<Vec<i32>>(), 7).len(), 7);
+        let items: Vec<i32> = (0..100).collect();
+        assert_eq!(decimate(&items[..10], 4), vec![0, 3, 6, 9]);
+        assert_eq!(decimate(&items[..3], 4), vec![0, 1, 2]);
+        assert_eq!(decimate(&items, 7).len(), 7);
+        assert!(decimate(&items, 0).is_empty());
+        assert!(decimate(&items[..0], 5).is_empty());
     }
 }

@@ -148,13 +148,13 @@ impl FrameProcessor {
         })
     }
 
-    /// The robot's tracker, when tracking is on.
     /// Applies tracking's pending background work (the last local BA), so that the maps are
     /// final: for the end of an offline run.
     pub fn flush_tracking(&mut self) -> Result<(), vsgraphs_slam::TrackError> {
         self.tracker.as_mut().map_or(Ok(()), Tracker::flush)
     }
 
+    /// The robot's tracker, when tracking is on.
     pub fn tracker(&self) -> Option<&Tracker> {
         self.tracker.as_ref()
     }
