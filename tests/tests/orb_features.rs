@@ -113,7 +113,6 @@ fn features_match_where_the_true_motion_puts_them() {
                 .unwrap()
         };
         let (first, second) = (extract(a, &mut extractor), extract(b, &mut extractor));
-        let row = |m: &Mat, i: usize| m.at_row::<u8>(i as i32).unwrap().to_vec();
         let with_depth = first.features.iter().filter(|f| f.depth.is_some()).count();
         assert!(
             with_depth * 10 >= first.features.len() * 8,
@@ -130,10 +129,10 @@ fn features_match_where_the_true_motion_puts_them() {
         let (mut matches, mut inliers) = (0, 0);
         for (i, f) in first.features.iter().enumerate() {
             let Some(z) = f.depth else { continue };
-            let d = row(&first.descriptors, i);
+            let d = first.descriptors[i];
             let mut best = (u32::MAX, u32::MAX, 0);
             for j in 0..second.features.len() {
-                let distance = hamming(&d, &row(&second.descriptors, j));
+                let distance = hamming(&d, &second.descriptors[j]);
                 if distance < best.0 {
                     best = (distance, best.0, j);
                 } else if distance < best.1 {
@@ -144,9 +143,9 @@ fn features_match_where_the_true_motion_puts_them() {
                 continue;
             }
             // Mutual: the match's best partner in the first frame is this feature.
-            let back = row(&second.descriptors, best.2);
+            let back = second.descriptors[best.2];
             let mutual = (0..first.features.len())
-                .min_by_key(|&k| hamming(&back, &row(&first.descriptors, k)))
+                .min_by_key(|&k| hamming(&back, &first.descriptors[k]))
                 == Some(i);
             if !mutual {
                 continue;
@@ -181,4 +180,55 @@ fn features_match_where_the_true_motion_puts_them() {
         all_inliers * 100 >= all_matches * 85,
         "{all_inliers} of {all_matches}"
     );
+}
+
+/// Our rotated BRIEF, on our own pyramid, gives OpenCV's `ORB::compute` bits for the same
+/// keypoints at every level: the descriptors the tracker matches are ORB's.
+#[test]
+fn descriptors_are_opencvs_at_every_level() {
+    let scenario = Scenario::builtin("seq03").unwrap();
+    let building = Building::from_plan(&scenario.plan).unwrap();
+    let renderer = Renderer::new(&scenario.plan, &building, scenario.render.clone(), 1);
+    let walk = scenario.walks().unwrap().remove(0);
+    let mut images = vec![grey_mat(
+        &renderer
+            .render(900, walk.times[900], &[walk.world_from_camera[900]])
+            .grey(),
+    )];
+    if let Some(data) = data_dir("descriptors_are_opencvs_at_every_level") {
+        let path = data.join("7scenes-a/frame-000100.color.jpg");
+        images.push(
+            opencv::imgcodecs::imread(path.to_str().unwrap(), opencv::imgcodecs::IMREAD_GRAYSCALE)
+                .unwrap(),
+        );
+    }
+    let mut ours = OrbExtractor::new(OrbParams::default()).unwrap();
+    let mut opencv =
+        ORB::create(1000, 1.2, 8, 16, 0, 2, ORB_ScoreType::HARRIS_SCORE, 31, 20).unwrap();
+    for image in &images {
+        let extraction = ours.extract(image, None).unwrap();
+        let mut keypoints = Vector::<KeyPoint>::new();
+        for f in &extraction.features {
+            let size = 31.0 * 1.2f32.powi(f.octave);
+            keypoints.push(
+                KeyPoint::new_coords(f.x, f.y, size, f.angle, f.response, f.octave, -1).unwrap(),
+            );
+        }
+        let mut theirs = Mat::default();
+        opencv.compute(image, &mut keypoints, &mut theirs).unwrap();
+        assert_eq!(keypoints.len(), extraction.features.len());
+        let mut per_level = [0usize; 8];
+        for (i, (f, d)) in extraction
+            .features
+            .iter()
+            .zip(&extraction.descriptors)
+            .enumerate()
+        {
+            let row = theirs.at_row::<u8>(i as i32).unwrap();
+            assert_eq!(&d[..], row, "feature {i} at level {}", f.octave);
+            per_level[f.octave as usize] += 1;
+        }
+        eprintln!("descriptors equal to OpenCV's, per level: {per_level:?}");
+        assert!(per_level.iter().all(|&n| n > 0), "every level has features");
+    }
 }

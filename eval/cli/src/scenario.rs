@@ -209,7 +209,7 @@ pub fn print_table(run: &ScenarioRun) {
     }
     let m = &run.median_ms;
     println!(
-        "median ms per frame: pipeline {:.2} (decode {:.2}, markers {:.2}, features {:.2}, tracking {:.2}); means: mapping {:.2}, local BA {:.2} (own thread)",
+        "median ms per frame: pipeline {:.2} (decode {:.2}, markers {:.2}, features {:.2}, tracking {:.2}); means per frame: mapping {:.2}, local BA {:.2} (wherever it was solved)",
         m.pipeline, m.decode, m.markers, m.features, m.tracking, m.mapping_mean, m.local_ba_mean
     );
     println!();

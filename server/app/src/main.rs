@@ -157,7 +157,7 @@ fn print_offline(s: &vsgraphs_server::offline::OfflineSummary) {
         s.maps, s.keyframes, s.map_points, s.markers
     );
     println!(
-        "median ms per frame: pipeline {:.2} (decode {:.2}, markers {:.2}, features {:.2}, tracking {:.2}, mapping {:.2}); means: mapping {:.2}, local BA {:.2} (own thread)",
+        "median ms per frame: pipeline {:.2} (decode {:.2}, markers {:.2}, features {:.2}, tracking {:.2}, mapping {:.2}); means per frame: mapping {:.2}, local BA {:.2} (wherever it was solved)",
         median(&s.pipeline_ms),
         median(&s.decode_ms),
         median(&s.detection_ms),

@@ -4,11 +4,10 @@
 use crate::markers::MarkerSighting;
 use nalgebra::Vector3;
 use vsgraphs_sgraph::Pinhole;
-use vsgraphs_vision::opencv::prelude::*;
 use vsgraphs_vision::orb::Extraction;
 
 /// A 256-bit rotated-BRIEF descriptor.
-pub type Descriptor = [u8; 32];
+pub use vsgraphs_vision::brief::Descriptor;
 
 /// Number of differing bits.
 pub fn hamming(a: &Descriptor, b: &Descriptor) -> u32 {
@@ -94,15 +93,10 @@ pub struct Frame {
 }
 
 impl Frame {
-    /// Builds a frame from an extraction (`descriptors` must be N × 32 bytes).
+    /// Builds a frame from an extraction.
     pub fn new(timestamp_ns: u64, extraction: &Extraction, rig: &Rig) -> Self {
-        let bytes = extraction.descriptors.data_bytes().unwrap_or(&[]);
-        let n = extraction.features.len().min(bytes.len() / 32);
-        let descriptors = bytes
-            .chunks_exact(32)
-            .take(n)
-            .map(|c| c.try_into().expect("32 bytes"))
-            .collect();
+        let n = extraction.features.len().min(extraction.descriptors.len());
+        let descriptors = extraction.descriptors[..n].to_vec();
         let keypoints = extraction.features[..n]
             .iter()
             .map(|f| Keypoint {

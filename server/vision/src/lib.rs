@@ -5,6 +5,7 @@
 //! Must not depend on zenoh, tokio or the server; takes wire types from `vsgraphs-proto`.
 
 pub mod aruco;
+pub mod brief;
 pub mod camera;
 pub mod decode;
 pub mod depth;
