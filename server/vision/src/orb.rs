@@ -40,7 +40,7 @@ impl Default for OrbParams {
     }
 }
 
-/// Side of the square patch a descriptor and an orientation are computed on, pixels.
+/// Half the side of the square patch an orientation is computed on, pixels.
 const HALF_PATCH: i32 = 15;
 /// Corners closer than this to a level's border are not searched (room for the patch).
 const BORDER: i32 = 16;
