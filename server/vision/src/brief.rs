@@ -2,10 +2,10 @@
 //! around a keypoint, the pairs turned by the keypoint's orientation so that the bits do not
 //! change when the image turns.
 //!
-//! Computed here, on the extractor's own pyramid, rather than by OpenCV's `ORB::compute`, which
-//! rebuilds a pyramid of its own (about 2.5 ms per frame) at slightly different keypoint
-//! positions. On a level's pixels the bits equal OpenCV's (tested against it): the same pairs,
-//! the same 7×7 Gaussian (σ = 2, by the same filter) and the same rounding of turned pairs.
+//! Computed here rather than by OpenCV's `ORB::compute`, which builds its pyramid again and
+//! goes through the bindings per keypoint: the extractor already holds the levels and the
+//! corners. On the same level the bits equal OpenCV's (tested against it): the same pairs, the
+//! same 7×7 Gaussian (σ = 2, by the same filter) and the same rounding of turned pairs.
 
 use crate::CvError;
 use opencv::core::{Mat, Rect, Scalar, Size, BORDER_REFLECT_101};
