@@ -23,6 +23,16 @@ fn coverage(points: impl Iterator<Item = (f32, f32)>) -> f64 {
     cells.iter().flatten().filter(|&&c| c).count() as f64 / 80.0
 }
 
+/// 7-Scenes colour frame `i` of the shared data, as grey.
+fn seven_scenes_grey(data: &std::path::Path, i: usize) -> Mat {
+    let path = data.join(format!("7scenes-a/frame-{i:06}.color.jpg"));
+    let image =
+        opencv::imgcodecs::imread(path.to_str().unwrap(), opencv::imgcodecs::IMREAD_GRAYSCALE)
+            .unwrap();
+    assert!(!image.empty(), "{}", path.display());
+    image
+}
+
 fn grey_mat(grey: &[u8]) -> Mat {
     Mat::new_rows_cols_with_data(480, 640, grey)
         .unwrap()
@@ -52,14 +62,7 @@ fn features_cover_the_image_better_than_opencv_orb() {
     let mut images = Vec::new();
     if let Some(data) = data_dir("features_cover_the_image_better_than_opencv_orb") {
         for i in [0, 100, 200, 300] {
-            let path = data.join(format!("7scenes-a/frame-{i:06}.color.jpg"));
-            let image = opencv::imgcodecs::imread(
-                path.to_str().unwrap(),
-                opencv::imgcodecs::IMREAD_GRAYSCALE,
-            )
-            .unwrap();
-            assert!(!image.empty(), "{}", path.display());
-            images.push((format!("7scenes frame {i}"), image));
+            images.push((format!("7scenes frame {i}"), seven_scenes_grey(&data, i)));
         }
     }
     let scenario = Scenario::builtin("seq03").unwrap();
@@ -196,11 +199,7 @@ fn descriptors_are_opencvs_at_every_level() {
             .grey(),
     )];
     if let Some(data) = data_dir("descriptors_are_opencvs_at_every_level") {
-        let path = data.join("7scenes-a/frame-000100.color.jpg");
-        images.push(
-            opencv::imgcodecs::imread(path.to_str().unwrap(), opencv::imgcodecs::IMREAD_GRAYSCALE)
-                .unwrap(),
-        );
+        images.push(seven_scenes_grey(&data, 100));
     }
     let mut ours = OrbExtractor::new(OrbParams::default()).unwrap();
     let mut opencv =

@@ -95,9 +95,9 @@ pub struct Frame {
 impl Frame {
     /// Builds a frame from an extraction.
     pub fn new(timestamp_ns: u64, extraction: &Extraction, rig: &Rig) -> Self {
-        let n = extraction.features.len().min(extraction.descriptors.len());
-        let descriptors = extraction.descriptors[..n].to_vec();
-        let keypoints = extraction.features[..n]
+        let descriptors = extraction.descriptors.clone();
+        let keypoints = extraction
+            .features
             .iter()
             .map(|f| Keypoint {
                 x: f64::from(f.x),
