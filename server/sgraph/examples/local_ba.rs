@@ -15,6 +15,7 @@ fn main() {
         ..Options::default()
     };
     let mut best = [Duration::MAX; 4];
+    let mut final_cost = 0.0;
     for _ in 0..runs {
         let mut scene = bundle_scene(&BundleConfig::default(), 1);
         let report = Solver::new(options.clone())
@@ -26,12 +27,13 @@ fn main() {
             report.iterations.iter().map(|i| i.solve_time).sum(),
             report.total_time,
         ];
+        final_cost = report.final_cost;
         for (b, p) in best.iter_mut().zip(phases) {
             *b = (*b).min(p);
         }
     }
     println!(
-        "{threads} thread(s), fastest of {runs}: analysis {:?}, linearise {:?}, solve {:?}, total {:?}",
+        "{threads} thread(s), fastest of {runs}: analysis {:?}, linearise {:?}, solve {:?}, total {:?}; final cost {final_cost:e}",
         best[0], best[1], best[2], best[3]
     );
 }

@@ -186,3 +186,39 @@ fn threads_share_the_work_without_changing_the_steps() {
     assert!(one.num_factors() >= 4000, "{}", one.num_factors());
     same_on_threads(one, many, 2, true);
 }
+
+#[test]
+fn a_small_s_graph_is_eliminated_as_exactly_as_a_bundle_adjustment() {
+    // Few keyframes, so that S is small enough to be laid out dense, and map points tied to
+    // walls: eliminated points then couple with planes as well as poses.
+    let building = vsgraphs_sgraph::testing::BuildingConfig {
+        keyframe_spacing: 2.5,
+        points_per_wall: 20,
+        ..Default::default()
+    };
+    let mut with = vsgraphs_sgraph::testing::building_scene(&building, 4).problem;
+    let mut without = vsgraphs_sgraph::testing::building_scene(&building, 4).problem;
+    let options = |eliminate_points| Options {
+        eliminate_points,
+        max_iterations: 5,
+        ..Options::default()
+    };
+    let a = Solver::new(options(true)).solve(&mut with).unwrap();
+    let b = Solver::new(options(false)).solve(&mut without).unwrap();
+    assert!(a.eliminated_points > 0);
+    assert!(
+        a.reduced_dim <= 300,
+        "S has {} rows, not dense",
+        a.reduced_dim
+    );
+    assert_eq!(a.iterations.len(), b.iterations.len());
+    for (x, y) in a.iterations.iter().zip(&b.iterations) {
+        assert!(
+            (x.tried_cost - y.tried_cost).abs() <= 1e-9 * y.tried_cost,
+            "iteration {}: {} vs {}",
+            x.iteration,
+            x.tried_cost,
+            y.tried_cost
+        );
+    }
+}

@@ -167,8 +167,9 @@ impl NormalEquations {
                 });
                 w_len += 3 * dim;
             }
+            // A dense S is updated point by point without a list of pairs.
             for i in first..couplings.len() {
-                for j in i..couplings.len() {
+                for j in (i..couplings.len()).filter(|_| !dense) {
                     let (oi, oj) = (couplings[i].offset, couplings[j].offset);
                     pairs.push(SchurPair {
                         i: i as u32,
@@ -277,6 +278,7 @@ impl NormalEquations {
                 offset,
                 n_reduced,
                 n,
+                dense,
                 col_ptr,
                 row_idx,
                 diag,

@@ -3,6 +3,7 @@
 
 use super::{Scratch, Share, Structure};
 use crate::problem::Entry;
+use crate::values::Kind;
 use crate::values::Values;
 use nalgebra::Matrix3;
 
@@ -68,23 +69,65 @@ fn assemble_portable(
         cost += lin.linearize(e, values);
         let m = e.factor.residual_dim();
         let n = e.total_dim;
-        // The factor's own JᵀJ (full, column-major) and Jᵀr, then scattered by block.
-        // Both are overwritten in full below.
+        let (jac, r) = (&lin.jacobian[..m * n], &lin.residual[..m]);
+        let keys = e.factor.keys();
+        let kinds = e.factor.kinds();
+        let slots = &st.slots[st.slot_start[fi]..st.slot_start[fi + 1]];
+        let elim_slots = &st.elim_slots[st.elim_start[fi]..st.elim_start[fi + 1]];
+        // A pose and an eliminated point (reprojection, the bulk of bundle adjustment): only
+        // the blocks that are kept are formed, sizes known at compile time, and written
+        // straight to their places.
+        if n == 9 && (m == 2 || m == 3) && kinds == [Kind::Pose, Kind::Point] {
+            let point = st.offset[keys[1].index()];
+            if point != usize::MAX && point >= nr {
+                let b = if m == 3 {
+                    pose_point_blocks::<3>(jac, r)
+                } else {
+                    pose_point_blocks::<2>(jac, r)
+                };
+                let pose = st.offset[keys[0].index()];
+                if pose != usize::MAX {
+                    add(&mut g_r[pose..pose + 6], &b.g_pose);
+                }
+                let p = point - g_l_start;
+                add(&mut g_l[p..p + 3], &b.g_point);
+                for slot in slots {
+                    // The pose's own block: the upper triangle of its 6 × 6, by column.
+                    for (k, col) in b.pose.iter().enumerate() {
+                        let base = st.col_ptr[slot.col0 + k] + slot.prefix;
+                        add(&mut h[base..base + k + 1], &col[..k + 1]);
+                    }
+                }
+                for s in elim_slots {
+                    if s.r == 1 {
+                        let v = &mut v[s.target - share.elim.start];
+                        for (c, col) in b.point.iter().enumerate() {
+                            for (rr, x) in col.iter().enumerate() {
+                                v[(rr, c)] += x;
+                            }
+                        }
+                    } else {
+                        let at = st.couplings[s.target].data - share.data.start;
+                        let w: &mut [f64; 18] = (&mut w[at..at + 18]).try_into().expect("6 × 3");
+                        for (c, col) in b.coupling.iter().enumerate() {
+                            add(&mut w[6 * c..6 * c + 6], col);
+                        }
+                    }
+                }
+                continue;
+            }
+        }
+        // Anything else: the factor's own JᵀJ (full, column-major) and Jᵀr, then scattered by
+        // block. Both are overwritten in full below.
         jtj.resize(n * n, 0.0);
         jtr.resize(n, 0.0);
-        let (jac, r) = (&lin.jacobian[..m * n], &lin.residual[..m]);
-        // The shapes of the common factors: RGB-D and monocular reprojection, relative pose
-        // and prior, marker corners.
+        // The shapes of the other common factors: relative pose and prior, marker corners.
         match (m, n) {
-            (3, 9) => gram::<3, 9>(jac, r, jtj, jtr),
-            (2, 9) => gram::<2, 9>(jac, r, jtj, jtr),
             (6, 12) => gram::<6, 12>(jac, r, jtj, jtr),
             (6, 6) => gram::<6, 6>(jac, r, jtj, jtr),
             (8, 12) => gram::<8, 12>(jac, r, jtj, jtr),
             _ => gram_dyn(jac, r, n, jtj, jtr),
         }
-        let keys = e.factor.keys();
-        let kinds = e.factor.kinds();
         for (ia, &a) in keys.iter().enumerate() {
             let off = st.offset[a.index()];
             if off == usize::MAX {
@@ -100,7 +143,7 @@ fn assemble_portable(
                 *g += x;
             }
         }
-        for slot in &st.slots[st.slot_start[fi]..st.slot_start[fi + 1]] {
+        for slot in slots {
             let (ia, ib) = (slot.a as usize, slot.b as usize);
             let (ca, cb) = (e.columns[ia], e.columns[ib]);
             let da = kinds[ia].dim();
@@ -113,7 +156,7 @@ fn assemble_portable(
                 }
             }
         }
-        for s in &st.elim_slots[st.elim_start[fi]..st.elim_start[fi + 1]] {
+        for s in elim_slots {
             let (cl, cr) = (e.columns[s.l as usize], e.columns[s.r as usize]);
             if s.l == s.r {
                 let v = &mut v[s.target - share.elim.start];
@@ -172,4 +215,61 @@ fn gram_dyn(jac: &[f64], r: &[f64], n: usize, jtj: &mut [f64], jtr: &mut [f64]) 
             jtj[i * n + j] = x;
         }
     }
+}
+
+#[inline(always)]
+fn add(sum: &mut [f64], part: &[f64]) {
+    for (s, p) in sum.iter_mut().zip(part) {
+        *s += p;
+    }
+}
+
+/// The blocks of `JᵀJ` and `Jᵀr` that a pose–point factor contributes, with `J = [A | B]`
+/// (`A` the pose's six columns, `B` the point's three): `AᵀA`, `AᵀB`, `BᵀB`, `Aᵀr`, `Bᵀr`,
+/// each by column.
+struct PosePointBlocks {
+    pose: [[f64; 6]; 6],
+    coupling: [[f64; 6]; 3],
+    point: [[f64; 3]; 3],
+    g_pose: [f64; 6],
+    g_point: [f64; 3],
+}
+
+/// [`PosePointBlocks`] of a column-major `M × 9` Jacobian: each row is read once into
+/// registers, and every sum runs over the `M` rows in the same order as [`gram`]'s.
+#[inline(always)]
+fn pose_point_blocks<const M: usize>(jac: &[f64], r: &[f64]) -> PosePointBlocks {
+    let jac: &[f64] = &jac[..9 * M];
+    let a: [[f64; 6]; M] = std::array::from_fn(|k| std::array::from_fn(|c| jac[c * M + k]));
+    let b: [[f64; 3]; M] = std::array::from_fn(|k| std::array::from_fn(|c| jac[(6 + c) * M + k]));
+    let r: &[f64; M] = r.try_into().expect("M residuals");
+    let mut out = PosePointBlocks {
+        pose: [[0.0; 6]; 6],
+        coupling: [[0.0; 6]; 3],
+        point: [[0.0; 3]; 3],
+        g_pose: [0.0; 6],
+        g_point: [0.0; 3],
+    };
+    for ((a, b), &r) in a.iter().zip(&b).zip(r) {
+        for (col, &ac) in out.pose.iter_mut().zip(a) {
+            for (o, &ai) in col.iter_mut().zip(a) {
+                *o += ai * ac;
+            }
+        }
+        for ((coupling, point), &bc) in out.coupling.iter_mut().zip(&mut out.point).zip(b) {
+            for (o, &ai) in coupling.iter_mut().zip(a) {
+                *o += ai * bc;
+            }
+            for (o, &bi) in point.iter_mut().zip(b) {
+                *o += bi * bc;
+            }
+        }
+        for (o, &ai) in out.g_pose.iter_mut().zip(a) {
+            *o += ai * r;
+        }
+        for (o, &bi) in out.g_point.iter_mut().zip(b) {
+            *o += bi * r;
+        }
+    }
+    out
 }

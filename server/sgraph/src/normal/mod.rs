@@ -100,6 +100,8 @@ struct Structure {
     offset: Vec<usize>,
     n_reduced: usize,
     n: usize,
+    /// `S` is laid out dense: column `c` holds rows `0..=c`.
+    dense: bool,
     col_ptr: Vec<usize>,
     row_idx: Vec<usize>,
     diag: Vec<usize>,
@@ -109,6 +111,7 @@ struct Structure {
     elim_slots: Vec<ElimSlot>,
     coupling_start: Vec<usize>,
     couplings: Vec<Coupling>,
+    /// Empty when `S` is dense.
     pairs: Vec<SchurPair>,
     shares: Vec<Share>,
 }

@@ -1,5 +1,9 @@
 //! Elimination of the points: `V⁻¹`, `Y = W·V⁻¹`, the reduced right-hand side, the Schur
 //! complement `S −= Y·Wᵀ`, and the back substitution that recovers the points' steps.
+//!
+//! The Schur products are the bulk of a bundle adjustment's solve. They are compiled for AVX2
+//! and FMA too and chosen at run time; both builds round alike because every product is an
+//! `f64::mul_add`.
 
 use super::{Coupling, LinearError, SchurPair, Share, Structure, MIN_DIAGONAL};
 use nalgebra::{Matrix3, Vector3};
@@ -40,6 +44,25 @@ pub(super) fn eliminate(
             let d = cp.dim;
             let w = &input.w[cp.data..cp.data + 3 * d];
             let y = &mut y[cp.data - base..cp.data - base + 3 * d];
+            if d == 6 {
+                // A pose, as in bundle adjustment: fixed sizes, so that it vectorises.
+                let w: &[f64; 18] = w.try_into().expect("6 × 3");
+                let y: &mut [f64; 18] = y.try_into().expect("6 × 3");
+                let rhs: &mut [f64; 6] = (&mut rhs[cp.offset..cp.offset + 6])
+                    .try_into()
+                    .expect("6 rows");
+                for c in 0..3 {
+                    for rr in 0..6 {
+                        y[c * 6 + rr] = w[rr] * v_inv[(0, c)]
+                            + w[6 + rr] * v_inv[(1, c)]
+                            + w[12 + rr] * v_inv[(2, c)];
+                    }
+                }
+                for rr in 0..6 {
+                    rhs[rr] += y[rr] * g_l.x + y[6 + rr] * g_l.y + y[12 + rr] * g_l.z;
+                }
+                continue;
+            }
             for c in 0..3 {
                 for rr in 0..d {
                     y[c * d + rr] = w[rr] * v_inv[(0, c)]
@@ -52,8 +75,12 @@ pub(super) fn eliminate(
             }
         }
     }
-    let pairs = &st.pairs[share.pairs.clone()];
-    schur_update(pairs, &st.couplings, y, base, input.w, &st.col_ptr, s);
+    if st.dense {
+        schur_update_dense(st, share, y, input.w, s);
+    } else {
+        let pairs = &st.pairs[share.pairs.clone()];
+        schur_update(pairs, &st.couplings, y, base, input.w, &st.col_ptr, s);
+    }
     Ok(())
 }
 
@@ -72,6 +99,14 @@ pub(super) fn back_substitute(
             let d = cp.dim;
             let w = &w[cp.data..cp.data + 3 * d];
             let dr = &delta_r[cp.offset..cp.offset + d];
+            if d == 6 {
+                let w: &[f64; 18] = w.try_into().expect("6 × 3");
+                let dr: &[f64; 6] = dr.try_into().expect("6 entries");
+                for c in 0..3 {
+                    b[c] -= dot6(&w[6 * c..6 * c + 6], dr);
+                }
+                continue;
+            }
             for c in 0..3 {
                 b[c] -= super::dot(&w[c * d..(c + 1) * d], dr);
             }
@@ -80,9 +115,8 @@ pub(super) fn back_substitute(
     }
 }
 
-/// `S −= Y_i·W_jᵀ` for every pair of couplings of every eliminated variable (`y` starts at
-/// entry `base` of the full layout): the bulk of the
-/// work of a bundle adjustment's solve, compiled for AVX2 too and chosen at run time.
+/// `S −= Y_i·W_jᵀ` for every pair of couplings of every eliminated variable when `S` is
+/// sparse (`y` starts at entry `base` of the full layout).
 fn schur_update(
     pairs: &[SchurPair],
     couplings: &[Coupling],
@@ -93,15 +127,15 @@ fn schur_update(
     s: &mut [f64],
 ) {
     #[cfg(target_arch = "x86_64")]
-    if std::arch::is_x86_feature_detected!("avx2") {
-        // SAFETY: the CPU has just been found to support AVX2.
+    if std::arch::is_x86_feature_detected!("avx2") && std::arch::is_x86_feature_detected!("fma") {
+        // SAFETY: the CPU has just been found to support AVX2 and FMA.
         return unsafe { schur_update_avx2(pairs, couplings, y, base, w, col_ptr, s) };
     }
     schur_update_portable(pairs, couplings, y, base, w, col_ptr, s)
 }
 
 #[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx2")]
+#[target_feature(enable = "avx2,fma")]
 unsafe fn schur_update_avx2(
     pairs: &[SchurPair],
     couplings: &[Coupling],
@@ -130,7 +164,8 @@ fn schur_update_portable(
         let (di, dj) = (ci.dim, cj.dim);
         let diagonal = pair.i == pair.j;
         if di == 6 && dj == 6 {
-            // Pose–pose, the bulk of bundle adjustment: fixed-size columns.
+            // Pose–pose, the bulk of bundle adjustment: fixed-size columns, each entry updated
+            // by three fused multiply–adds.
             let y: &[f64; 18] = y[ci.data - base..ci.data - base + 18]
                 .try_into()
                 .expect("18 entries");
@@ -138,17 +173,18 @@ fn schur_update_portable(
             for k in 0..6 {
                 let at = col_ptr[pair.col0 + k] + pair.prefix;
                 let (w0, w1, w2) = (w[k], w[6 + k], w[12 + k]);
-                let col: [f64; 6] =
-                    std::array::from_fn(|r| y[r] * w0 + y[6 + r] * w1 + y[12 + r] * w2);
+                let update = |o: &mut f64, r: usize| {
+                    *o = (-y[12 + r]).mul_add(w2, (-y[6 + r]).mul_add(w1, (-y[r]).mul_add(w0, *o)));
+                };
                 if diagonal {
-                    for (o, x) in s[at..at + k + 1].iter_mut().zip(&col) {
-                        *o -= x;
+                    for (r, o) in s[at..at + k + 1].iter_mut().enumerate() {
+                        update(o, r);
                     }
                 } else {
                     // A whole column of six, fixed in size so that it vectorises.
                     let dst: &mut [f64; 6] = (&mut s[at..at + 6]).try_into().expect("6 rows");
-                    for (o, x) in dst.iter_mut().zip(&col) {
-                        *o -= x;
+                    for (r, o) in dst.iter_mut().enumerate() {
+                        update(o, r);
                     }
                 }
             }
@@ -159,10 +195,131 @@ fn schur_update_portable(
         for k in 0..dj {
             let at = col_ptr[pair.col0 + k] + pair.prefix;
             let rows = if diagonal { k + 1 } else { di };
-            let (w0, w1, w2) = (w[k], w[dj + k], w[2 * dj + k]);
-            for (rr, o) in s[at..at + rows].iter_mut().enumerate() {
-                *o -= y[rr] * w0 + y[di + rr] * w1 + y[2 * di + rr] * w2;
+            subtract_product_dyn(&mut s[at..at + rows], y, [w[k], w[dj + k], w[2 * dj + k]]);
+        }
+    }
+}
+
+#[inline(always)]
+fn dot6(a: &[f64], b: &[f64; 6]) -> f64 {
+    let a: &[f64; 6] = a.try_into().expect("6 entries");
+    (0..6).map(|i| a[i] * b[i]).sum()
+}
+
+/// `S −= Y·Wᵀ` over the share's eliminated variables when `S` is dense (the usual local bundle
+/// adjustment): column by column of each coupling `j`, the three entries of `W_j` in that
+/// column are loaded once and every coupling `i` before `j` updates its rows with them.
+fn schur_update_dense(st: &Structure, share: &Share, y: &[f64], w: &[f64], s: &mut [f64]) {
+    #[cfg(target_arch = "x86_64")]
+    if std::arch::is_x86_feature_detected!("avx2") && std::arch::is_x86_feature_detected!("fma") {
+        // SAFETY: the CPU has just been found to support AVX2 and FMA.
+        return unsafe { schur_update_dense_avx2(st, share, y, w, s) };
+    }
+    schur_update_dense_portable(st, share, y, w, s)
+}
+
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2,fma")]
+unsafe fn schur_update_dense_avx2(
+    st: &Structure,
+    share: &Share,
+    y: &[f64],
+    w: &[f64],
+    s: &mut [f64],
+) {
+    schur_update_dense_portable(st, share, y, w, s)
+}
+
+#[inline(always)]
+fn schur_update_dense_portable(st: &Structure, share: &Share, y: &[f64], w: &[f64], s: &mut [f64]) {
+    let base = share.data.start;
+    for e in share.elim.clone() {
+        let couplings = &st.couplings[st.coupling_start[e]..st.coupling_start[e + 1]];
+        let Some(first) = couplings.first() else {
+            continue;
+        };
+        // The couplings of one variable are contiguous in `y` and `w`.
+        let len: usize = couplings.iter().map(|c| 3 * c.dim).sum();
+        let (ye, we) = (&y[first.data - base..][..len], &w[first.data..][..len]);
+        if couplings.iter().all(|c| c.dim == 6) {
+            poses_only(
+                couplings,
+                ye.as_chunks().0,
+                we.as_chunks().0,
+                &st.col_ptr,
+                s,
+            );
+            continue;
+        }
+        let mut at_j = 0;
+        for (jx, cj) in couplings.iter().enumerate() {
+            let dj = cj.dim;
+            let wj = &we[at_j..at_j + 3 * dj];
+            for k in 0..dj {
+                let c = cj.offset + k;
+                let column = &mut s[st.col_ptr[c]..st.col_ptr[c + 1]];
+                let wk = [wj[k], wj[dj + k], wj[2 * dj + k]];
+                let mut at_i = 0;
+                for ci in &couplings[..jx] {
+                    let yi = &ye[at_i..at_i + 3 * ci.dim];
+                    subtract_product_dyn(&mut column[ci.offset..ci.offset + ci.dim], yi, wk);
+                    at_i += 3 * ci.dim;
+                }
+                // The diagonal block: its upper triangle, rows up to this column.
+                let yj = &ye[at_j..at_j + 3 * dj];
+                subtract_product_dyn(&mut column[cj.offset..=c], yj, wk);
+            }
+            at_j += 3 * dj;
+        }
+    }
+}
+
+/// [`schur_update_dense`] for a variable all of whose neighbours are poses (a map point):
+/// every block is `6 × 6`.
+#[inline(always)]
+fn poses_only(
+    couplings: &[Coupling],
+    y: &[[f64; 18]],
+    w: &[[f64; 18]],
+    col_ptr: &[usize],
+    s: &mut [f64],
+) {
+    for (jx, (cj, wj)) in couplings.iter().zip(w).enumerate() {
+        let yj = &y[jx];
+        for k in 0..6 {
+            let c = cj.offset + k;
+            let column = &mut s[col_ptr[c]..col_ptr[c + 1]];
+            let wk = [wj[k], wj[6 + k], wj[12 + k]];
+            for (ci, yi) in couplings[..jx].iter().zip(y) {
+                let rows: &mut [f64; 6] = (&mut column[ci.offset..ci.offset + 6])
+                    .try_into()
+                    .expect("6 rows");
+                subtract_product(rows, yi, wk);
+            }
+            // The diagonal block: its upper triangle, rows up to this column.
+            for (r, o) in column[cj.offset..=c].iter_mut().enumerate() {
+                *o = (-yj[12 + r]).mul_add(
+                    wk[2],
+                    (-yj[6 + r]).mul_add(wk[1], (-yj[r]).mul_add(wk[0], *o)),
+                );
             }
         }
+    }
+}
+
+/// `rows −= Y·w` for a `6 × 3` column-major `Y`, by fused multiply–adds.
+#[inline(always)]
+fn subtract_product(rows: &mut [f64; 6], y: &[f64; 18], w: [f64; 3]) {
+    for (r, o) in rows.iter_mut().enumerate() {
+        *o = (-y[12 + r]).mul_add(w[2], (-y[6 + r]).mul_add(w[1], (-y[r]).mul_add(w[0], *o)));
+    }
+}
+
+/// `rows −= Y[..rows]·w` for a `d × 3` column-major `Y` of which the first rows are used.
+#[inline(always)]
+fn subtract_product_dyn(rows: &mut [f64], y: &[f64], w: [f64; 3]) {
+    let d = y.len() / 3;
+    for (r, o) in rows.iter_mut().enumerate() {
+        *o = (-y[2 * d + r]).mul_add(w[2], (-y[d + r]).mul_add(w[1], (-y[r]).mul_add(w[0], *o)));
     }
 }
