@@ -285,19 +285,22 @@ fn poses_only(
     s: &mut [f64],
 ) {
     for (jx, (cj, wj)) in couplings.iter().zip(w).enumerate() {
-        let yj = &y[jx];
-        for k in 0..6 {
-            let c = cj.offset + k;
-            let column = &mut s[col_ptr[c]..col_ptr[c + 1]];
-            let wk = [wj[k], wj[6 + k], wj[12 + k]];
-            for (ci, yi) in couplings[..jx].iter().zip(y) {
-                let rows: &mut [f64; 6] = (&mut column[ci.offset..ci.offset + 6])
-                    .try_into()
-                    .expect("6 rows");
-                subtract_product(rows, yi, wk);
+        // Where the six columns of block column `j` start; block row `i` is at `i`'s offset.
+        let starts: [usize; 6] = std::array::from_fn(|k| col_ptr[cj.offset + k]);
+        let wk: [[f64; 3]; 6] = std::array::from_fn(|k| [wj[k], wj[6 + k], wj[12 + k]]);
+        for (ci, yi) in couplings[..jx].iter().zip(y) {
+            // One block: `Y_i` stays in registers for its six columns.
+            for (start, wk) in starts.iter().zip(&wk) {
+                let at = start + ci.offset;
+                let rows: &mut [f64; 6] = (&mut s[at..at + 6]).try_into().expect("6 rows");
+                subtract_product(rows, yi, *wk);
             }
-            // The diagonal block: its upper triangle, rows up to this column.
-            for (r, o) in column[cj.offset..=c].iter_mut().enumerate() {
+        }
+        // The diagonal block: its upper triangle, rows up to each column.
+        let yj = &y[jx];
+        for (k, (start, wk)) in starts.iter().zip(&wk).enumerate() {
+            let at = start + cj.offset;
+            for (r, o) in s[at..=at + k].iter_mut().enumerate() {
                 *o = (-yj[12 + r]).mul_add(
                     wk[2],
                     (-yj[6 + r]).mul_add(wk[1], (-yj[r]).mul_add(wk[0], *o)),
