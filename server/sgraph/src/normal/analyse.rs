@@ -225,6 +225,13 @@ impl NormalEquations {
         }
         slot_start.push(slots.len());
         elim_start.push(elim_slots.len());
+        // Whether each coupling gets exactly one factor (as a reprojection in bundle
+        // adjustment): assembly then stores `W` instead of adding to a zeroed copy.
+        let mut writers = vec![0u32; couplings.len()];
+        for s in elim_slots.iter().filter(|s| s.l != s.r) {
+            writers[s.target] += 1;
+        }
+        let w_single = writers.iter().all(|&c| c == 1);
         let elim_of: Vec<Option<usize>> = elim_of
             .iter()
             .map(|l| l.map(|l| elim_index[l.index()]))
@@ -279,6 +286,7 @@ impl NormalEquations {
                 n_reduced,
                 n,
                 dense,
+                w_single,
                 col_ptr,
                 row_idx,
                 diag,

@@ -110,7 +110,11 @@ fn assemble_portable(
                         let at = st.couplings[s.target].data - share.data.start;
                         let w: &mut [f64; 18] = (&mut w[at..at + 18]).try_into().expect("6 × 3");
                         for (c, col) in b.coupling.iter().enumerate() {
-                            add(&mut w[6 * c..6 * c + 6], col);
+                            if st.w_single {
+                                w[6 * c..6 * c + 6].copy_from_slice(col);
+                            } else {
+                                add(&mut w[6 * c..6 * c + 6], col);
+                            }
                         }
                     }
                 }
@@ -171,8 +175,11 @@ fn assemble_portable(
                 let w = &mut w[at..at + 3 * cp.dim];
                 for c in 0..3 {
                     let src = &jtj[(cl + c) * n + cr..(cl + c) * n + cr + cp.dim];
-                    for (x, y) in w[c * cp.dim..(c + 1) * cp.dim].iter_mut().zip(src) {
-                        *x += y;
+                    let dst = &mut w[c * cp.dim..(c + 1) * cp.dim];
+                    if st.w_single {
+                        dst.copy_from_slice(src);
+                    } else {
+                        add(dst, src);
                     }
                 }
             }

@@ -102,6 +102,8 @@ struct Structure {
     n: usize,
     /// `S` is laid out dense: column `c` holds rows `0..=c`.
     dense: bool,
+    /// Every coupling's `W` comes from exactly one factor, which stores it.
+    w_single: bool,
     col_ptr: Vec<usize>,
     row_idx: Vec<usize>,
     diag: Vec<usize>,
@@ -217,7 +219,9 @@ impl NormalEquations {
         let st = &self.st;
         self.h.fill(0.0);
         self.g.fill(0.0);
-        self.w.fill(0.0);
+        if !st.w_single {
+            self.w.fill(0.0);
+        }
         self.v.fill(Matrix3::zeros());
         for p in &mut self.helpers {
             p.h.fill(0.0);
