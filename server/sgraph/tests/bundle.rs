@@ -113,16 +113,7 @@ fn the_schur_complement_changes_nothing_but_speed() {
         .unwrap();
     assert_eq!(a.eliminated_points, 300);
     assert_eq!(b.eliminated_points, 0);
-    assert_eq!(a.iterations.len(), b.iterations.len());
-    for (x, y) in a.iterations.iter().zip(&b.iterations) {
-        assert!(
-            (x.tried_cost - y.tried_cost).abs() <= 1e-9 * y.tried_cost,
-            "iteration {}: {} vs {}",
-            x.iteration,
-            x.tried_cost,
-            y.tried_cost
-        );
-    }
+    assert_same_steps(&a, &b);
     // With every keyframe fixed, only the points move (structure-only adjustment): nothing is
     // left to factor after elimination, and the points still improve.
     for k in &with.keyframes {
@@ -131,6 +122,22 @@ fn the_schur_complement_changes_nothing_but_speed() {
     let report = Solver::new(options(true)).solve(&mut with.problem).unwrap();
     assert_eq!(report.reduced_dim, 0);
     assert!(report.final_cost <= report.initial_cost);
+}
+
+/// Two solves took the same steps: as many iterations, each accepted or not alike, with the
+/// same tried cost to 1e-9.
+fn assert_same_steps(a: &vsgraphs_sgraph::Report, b: &vsgraphs_sgraph::Report) {
+    assert_eq!(a.iterations.len(), b.iterations.len());
+    for (x, y) in a.iterations.iter().zip(&b.iterations) {
+        assert_eq!(x.accepted, y.accepted, "iteration {}", x.iteration);
+        assert!(
+            (x.tried_cost - y.tried_cost).abs() <= 1e-9 * y.tried_cost,
+            "iteration {}: {} vs {}",
+            x.iteration,
+            x.tried_cost,
+            y.tried_cost
+        );
+    }
 }
 
 /// Runs the same solve on one thread and on `threads`, and checks both take the same steps.
@@ -149,17 +156,7 @@ fn same_on_threads(
     let a = Solver::new(options(1)).solve(&mut one).unwrap();
     let b = Solver::new(options(threads)).solve(&mut many).unwrap();
     assert_eq!((a.threads, b.threads), (1, threads));
-    assert_eq!(a.iterations.len(), b.iterations.len());
-    for (x, y) in a.iterations.iter().zip(&b.iterations) {
-        assert_eq!(x.accepted, y.accepted, "iteration {}", x.iteration);
-        assert!(
-            (x.tried_cost - y.tried_cost).abs() <= 1e-9 * y.tried_cost,
-            "iteration {}: {} vs {}",
-            x.iteration,
-            x.tried_cost,
-            y.tried_cost
-        );
-    }
+    assert_same_steps(&a, &b);
 }
 
 #[test]
@@ -211,14 +208,5 @@ fn a_small_s_graph_is_eliminated_as_exactly_as_a_bundle_adjustment() {
         "S has {} rows, not dense",
         a.reduced_dim
     );
-    assert_eq!(a.iterations.len(), b.iterations.len());
-    for (x, y) in a.iterations.iter().zip(&b.iterations) {
-        assert!(
-            (x.tried_cost - y.tried_cost).abs() <= 1e-9 * y.tried_cost,
-            "iteration {}: {} vs {}",
-            x.iteration,
-            x.tried_cost,
-            y.tried_cost
-        );
-    }
+    assert_same_steps(&a, &b);
 }
