@@ -288,34 +288,48 @@ fn poses_only(
         // Where the six columns of block column `j` start; block row `i` is at `i`'s offset.
         let starts: [usize; 6] = std::array::from_fn(|k| col_ptr[cj.offset + k]);
         let wk: [[f64; 3]; 6] = std::array::from_fn(|k| [wj[k], wj[6 + k], wj[12 + k]]);
+        // What makes every block row above the diagonal fall inside `s`, checked once per
+        // block column rather than once per row: the columns start in order, the last one
+        // reaches the diagonal block, and the couplings (sorted by offset) do not overlap, so
+        // for `i` before `j`, `start + i.offset + 6 ≤ starts[5] + j.offset ≤ s.len()`.
+        assert!(starts.is_sorted() && starts[5] + cj.offset + 6 <= s.len());
+        assert!(jx == 0 || couplings[jx - 1].offset + 6 <= cj.offset);
+        let s_ptr = s.as_mut_ptr();
         for (ci, yi) in couplings[..jx].iter().zip(y) {
             // One block: `Y_i` stays in registers for its six columns.
             for (start, wk) in starts.iter().zip(&wk) {
-                let at = start + ci.offset;
-                let rows: &mut [f64; 6] = (&mut s[at..at + 6]).try_into().expect("6 rows");
+                // SAFETY: in bounds by the asserts above; no other reference into `s` is
+                // alive while `rows` is.
+                let rows = unsafe { &mut *s_ptr.add(start + ci.offset).cast::<[f64; 6]>() };
                 subtract_product(rows, yi, *wk);
             }
         }
-        // The diagonal block: its upper triangle, rows up to each column.
+        // The diagonal block: its upper triangle, rows up to each column, each column's
+        // length fixed at compile time so that it vectorises.
         let yj = &y[jx];
-        for (k, (start, wk)) in starts.iter().zip(&wk).enumerate() {
-            let at = start + cj.offset;
-            for (r, o) in s[at..=at + k].iter_mut().enumerate() {
-                *o = (-yj[12 + r]).mul_add(
-                    wk[2],
-                    (-yj[6 + r]).mul_add(wk[1], (-yj[r]).mul_add(wk[0], *o)),
-                );
-            }
-        }
+        let at: [usize; 6] = std::array::from_fn(|k| starts[k] + cj.offset);
+        subtract_product_upper::<1>(&mut s[at[0]..], yj, wk[0]);
+        subtract_product_upper::<2>(&mut s[at[1]..], yj, wk[1]);
+        subtract_product_upper::<3>(&mut s[at[2]..], yj, wk[2]);
+        subtract_product_upper::<4>(&mut s[at[3]..], yj, wk[3]);
+        subtract_product_upper::<5>(&mut s[at[4]..], yj, wk[4]);
+        subtract_product_upper::<6>(&mut s[at[5]..], yj, wk[5]);
     }
 }
 
-/// `rows −= Y·w` for a `6 × 3` column-major `Y`, by fused multiply–adds.
+/// `rows −= (Y·w)[..R]` for a `6 × 3` column-major `Y` (`R < 6`: a column of a diagonal
+/// block, upper triangle only), by fused multiply–adds.
 #[inline(always)]
-fn subtract_product(rows: &mut [f64; 6], y: &[f64; 18], w: [f64; 3]) {
+fn subtract_product<const R: usize>(rows: &mut [f64; R], y: &[f64; 18], w: [f64; 3]) {
     for (r, o) in rows.iter_mut().enumerate() {
         *o = (-y[12 + r]).mul_add(w[2], (-y[6 + r]).mul_add(w[1], (-y[r]).mul_add(w[0], *o)));
     }
+}
+
+/// [`subtract_product`] on the first `R` entries of `rows`.
+#[inline(always)]
+fn subtract_product_upper<const R: usize>(rows: &mut [f64], y: &[f64; 18], w: [f64; 3]) {
+    subtract_product::<R>((&mut rows[..R]).try_into().expect("R rows"), y, w);
 }
 
 /// `rows −= Y[..rows]·w` for a `d × 3` column-major `Y` of which the first rows are used.
