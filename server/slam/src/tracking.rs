@@ -534,9 +534,23 @@ impl Tracker {
         let predicted = self.predict(last, frame.timestamp_ns);
         let mut matched = self.track_last_frame(frame, rig, last, &predicted);
         if matched.as_ref().is_none_or(|m| m.inliers < 10) {
+            tracing::debug!(
+                stamp_ns = frame.timestamp_ns,
+                inliers = matched.as_ref().map_or(0, |m| m.inliers),
+                "too few matches with the last frame; trying the reference keyframe"
+            );
             matched = self.track_reference_keyframe(frame, rig, &last.world_from_camera);
         }
-        let matched = matched?;
+        let Some(matched) = matched else {
+            tracing::debug!(
+                stamp_ns = frame.timestamp_ns,
+                features = frame.len(),
+                with_depth = frame.with_depth(),
+                markers = ?frame.markers.iter().map(|m| m.id).collect::<Vec<_>>(),
+                "no pose from the last frame or the reference keyframe"
+            );
+            return None;
+        };
         let relocalised_recently = self
             .relocalised_ns
             .is_some_and(|t| frame.timestamp_ns.saturating_sub(t) < 1_000_000_000);
@@ -665,7 +679,12 @@ impl Tracker {
             })
             .collect();
         // Mapped markers in view constrain the pose through their corners.
-        observations.extend(markers::corner_observations(map, &frame.markers));
+        observations.extend(markers::corner_observations(
+            map,
+            &frame.markers,
+            rig,
+            start,
+        ));
         let PoseOnlyResult {
             world_from_camera,
             inliers,
@@ -817,6 +836,12 @@ impl Tracker {
             map.point_mut(p).visible += 1;
         }
         if refined.inliers < needed {
+            tracing::debug!(
+                stamp_ns = frame.timestamp_ns,
+                inliers = refined.inliers,
+                needed,
+                "too few inliers on the local map"
+            );
             return None;
         }
         let mut inliers: Vec<Option<MapPointId>> = vec![None; frame.len()];
@@ -867,10 +892,23 @@ impl Tracker {
             let Some(matched) = self.relocalise_against(frame, rig, k) else {
                 continue;
             };
+            let candidates = matched.inliers;
             if let Some(tracked) = self.track_local_map(frame, rig, matched, true, &[]) {
+                tracing::debug!(
+                    stamp_ns = frame.timestamp_ns,
+                    keyframe = k.0,
+                    inliers = tracked.inliers,
+                    "relocalised against a keyframe"
+                );
                 self.relocalisation_cursor = 0;
                 return Some(tracked);
             }
+            tracing::debug!(
+                stamp_ns = frame.timestamp_ns,
+                keyframe = k.0,
+                candidates,
+                "relocalisation failed on the local map"
+            );
         }
         None
     }
