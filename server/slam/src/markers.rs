@@ -121,16 +121,12 @@ pub fn corner_observations(
         if marker.side_m != sighting.side_m {
             continue;
         }
-        let corners: Vec<PoseObservation> = marker
-            .corners_in_world()
-            .iter()
-            .zip(&sighting.corners)
-            .map(|(corner, measured)| PoseObservation {
-                point_in_world: *corner,
-                measured: Measurement::Mono(*measured),
-                information: CORNER_INFORMATION,
-            })
-            .collect();
+        let in_world = marker.corners_in_world();
+        let corners: [PoseObservation; 4] = std::array::from_fn(|i| PoseObservation {
+            point_in_world: in_world[i],
+            measured: Measurement::Mono(sighting.corners[i]),
+            information: CORNER_INFORMATION,
+        });
         let mean_square = corners
             .iter()
             .map(|o| chi2(&rig.camera, rig.bf, world_from_camera, o) / o.information)

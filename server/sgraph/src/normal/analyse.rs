@@ -168,8 +168,8 @@ impl NormalEquations {
                 w_len += 3 * dim;
             }
             // A dense S is updated point by point without a list of pairs.
-            for i in first..couplings.len() {
-                for j in (i..couplings.len()).filter(|_| !dense) {
+            for i in (first..couplings.len()).filter(|_| !dense) {
+                for j in i..couplings.len() {
                     let (oi, oj) = (couplings[i].offset, couplings[j].offset);
                     pairs.push(SchurPair {
                         i: i as u32,

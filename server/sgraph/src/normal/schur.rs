@@ -173,19 +173,12 @@ fn schur_update_portable(
             for k in 0..6 {
                 let at = col_ptr[pair.col0 + k] + pair.prefix;
                 let (w0, w1, w2) = (w[k], w[6 + k], w[12 + k]);
-                let update = |o: &mut f64, r: usize| {
-                    *o = (-y[12 + r]).mul_add(w2, (-y[6 + r]).mul_add(w1, (-y[r]).mul_add(w0, *o)));
-                };
                 if diagonal {
-                    for (r, o) in s[at..at + k + 1].iter_mut().enumerate() {
-                        update(o, r);
-                    }
+                    subtract_product_dyn(&mut s[at..at + k + 1], y, [w0, w1, w2]);
                 } else {
                     // A whole column of six, fixed in size so that it vectorises.
                     let dst: &mut [f64; 6] = (&mut s[at..at + 6]).try_into().expect("6 rows");
-                    for (r, o) in dst.iter_mut().enumerate() {
-                        update(o, r);
-                    }
+                    subtract_product(dst, y, [w0, w1, w2]);
                 }
             }
             continue;
