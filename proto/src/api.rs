@@ -210,7 +210,9 @@ pub struct MapView {
     pub markers: Vec<MapMarker>,
 }
 
-/// One pose of `GET /api/v1/robots/{robot_id}/trajectory`.
+/// One pose of `GET /api/v1/robots/{robot_id}/trajectory`: a tracked frame's pose relative to
+/// its reference keyframe, composed with that keyframe's pose in the map's latest snapshot, so
+/// the trajectory follows the map as bundle adjustment refines it.
 #[derive(Debug, Clone, Copy, Serialize, Deserialize, PartialEq)]
 #[cfg_attr(feature = "openapi", derive(ToSchema))]
 pub struct TrajectoryPose {

@@ -20,7 +20,7 @@ async fn live_tracking_matches_the_offline_run() {
     };
     let dataset = dataset::open(&dir.join("7scenes-a")).unwrap();
     let offline_dataset = dataset.clone();
-    let (summary, offline) = tokio::task::spawn_blocking(move || {
+    let (summary, trajectories) = tokio::task::spawn_blocking(move || {
         vsgraphs_server::offline::run(
             &Config::default(),
             &offline_dataset,
@@ -32,6 +32,43 @@ async fn live_tracking_matches_the_offline_run() {
     .unwrap()
     .unwrap();
     assert_eq!(summary.tracked, FRAMES, "{:?}", summary.events);
+    // The refined trajectory puts a keyframe's frame where the final map has the keyframe,
+    // which local BA has moved since the frame was tracked.
+    let view = summary.map_views.last().expect("a map");
+    let first_ns = trajectories.refined[0].timestamp_ns;
+    let mut moved = 0;
+    for keyframe in &view.keyframes {
+        // Offline stamps start at 1 ns; the trajectory keeps the files' stamps.
+        let stamp = first_ns + keyframe.timestamp_ns - 1;
+        let at = |poses: &[vsgraphs_proto::api::TrajectoryPose]| {
+            poses
+                .iter()
+                .find(|p| p.timestamp_ns == stamp)
+                .expect("every keyframe's frame is in the trajectory")
+                .world_from_camera
+        };
+        let (refined, tracked) = (at(&trajectories.refined), at(&trajectories.as_tracked));
+        assert!(
+            largest_difference(&refined, &keyframe.world_from_camera) < 1e-9,
+            "keyframe {}: {refined:?} in the trajectory, {:?} in the map",
+            keyframe.id,
+            keyframe.world_from_camera
+        );
+        if largest_difference(&refined, &tracked) > 1e-6 {
+            moved += 1;
+        }
+    }
+    eprintln!(
+        "local BA moved {moved} of {} keyframes after they were tracked",
+        view.keyframes.len()
+    );
+    assert!(
+        moved * 2 > view.keyframes.len(),
+        "local BA moved only {moved} of {} keyframes",
+        view.keyframes.len()
+    );
+    // The API serves the refined trajectory too.
+    let offline = trajectories.refined;
     assert!(summary.keyframes >= 3, "{} keyframes", summary.keyframes);
 
     // A queue as long as the run: the comparison needs every frame, and a busy machine can
@@ -68,16 +105,10 @@ async fn live_tracking_matches_the_offline_run() {
     let mut worst: f64 = 0.0;
     for (a, b) in live.iter().zip(&offline) {
         assert_eq!(a.map, b.map);
-        for k in 0..3 {
-            worst = worst.max(
-                (a.world_from_camera.translation_m[k] - b.world_from_camera.translation_m[k]).abs(),
-            );
-        }
-        for k in 0..4 {
-            worst = worst.max(
-                (a.world_from_camera.rotation_xyzw[k] - b.world_from_camera.rotation_xyzw[k]).abs(),
-            );
-        }
+        worst = worst.max(largest_difference(
+            &a.world_from_camera,
+            &b.world_from_camera,
+        ));
     }
     eprintln!(
         "{FRAMES} frames live and offline: largest difference {worst:e}; {} keyframes",
@@ -89,4 +120,14 @@ async fn live_tracking_matches_the_offline_run() {
     );
     robot.close().await.unwrap();
     test.server.stop().await.unwrap();
+}
+
+/// The largest difference of two poses' translations (m) and quaternion components.
+fn largest_difference(a: &vsgraphs_proto::api::Pose, b: &vsgraphs_proto::api::Pose) -> f64 {
+    let translation = a.translation_m.iter().zip(&b.translation_m);
+    let rotation = a.rotation_xyzw.iter().zip(&b.rotation_xyzw);
+    translation
+        .chain(rotation)
+        .map(|(x, y)| (x - y).abs())
+        .fold(0.0, f64::max)
 }

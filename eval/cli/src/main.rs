@@ -160,8 +160,9 @@ enum Command {
         /// Server configuration (TOML); default: the built-in defaults.
         #[arg(long)]
         config: Option<PathBuf>,
-        /// Also write the estimated trajectory (TUM), the reference (TUM) and the map's model
-        /// (JSON) into this directory.
+        /// Also write the estimated trajectory (TUM: estimate.txt refined, estimate_as_tracked.txt
+        /// as tracked at the time), the reference (TUM) and the map's model (JSON) into this
+        /// directory.
         #[arg(long)]
         out: Option<PathBuf>,
         /// Print JSON instead of the tables.
@@ -262,6 +263,8 @@ fn main() -> anyhow::Result<()> {
                 std::fs::create_dir_all(&dir)
                     .with_context(|| format!("creating {}", dir.display()))?;
                 run.estimate.write_tum(&dir.join("estimate.txt"))?;
+                run.estimate_as_tracked
+                    .write_tum(&dir.join("estimate_as_tracked.txt"))?;
                 run.reference.write_tum(&dir.join("groundtruth.txt"))?;
                 std::fs::write(
                     dir.join("model.json"),

@@ -56,8 +56,12 @@ pub struct ScenarioRun {
     /// Median ms per frame: whole pipeline, decoding, markers, ORB features, tracking; and mean
     /// mapping and local BA ms per frame.
     pub median_ms: StageMedians,
-    /// ATE of the map the run ends in, SE(3)-aligned; `None` when fewer than 3 poses.
+    /// ATE of the map the run ends in, SE(3)-aligned, of the refined trajectory (each frame
+    /// moved with its reference keyframe, as ORB-SLAM writes trajectories); `None` when fewer
+    /// than 3 poses.
     pub ate: Option<Report>,
+    /// ATE RMSE of the same frames' poses as tracking gave them at the time, metres.
+    pub ate_as_tracked_rmse: Option<f64>,
     /// ATE over the reference path length (the measure for simulated runs).
     pub ate_percent_of_path: Option<f64>,
     /// The map's building model scored against the building (aligned by shared markers), or
@@ -68,6 +72,8 @@ pub struct ScenarioRun {
     pub model: BuildingModel,
     #[serde(skip)]
     pub estimate: Trajectory,
+    #[serde(skip)]
+    pub estimate_as_tracked: Trajectory,
     #[serde(skip)]
     pub reference: Trajectory,
 }
@@ -142,17 +148,26 @@ pub fn run(
         offline::run_frames(config, source, receiver.into_iter(), progress)
     })?;
 
-    let last_map = poses.last().map(|p| p.map);
-    let kept: Vec<_> = poses
-        .into_iter()
-        .filter(|p| Some(p.map) == last_map)
-        .collect();
-    let estimate = offline::trajectory(&kept);
+    let last_map = poses.refined.last().map(|p| p.map);
+    let in_last_map = |poses: &[vsgraphs_proto::api::TrajectoryPose]| {
+        let kept: Vec<_> = poses
+            .iter()
+            .filter(|p| Some(p.map) == last_map)
+            .copied()
+            .collect();
+        offline::trajectory(&kept)
+    };
+    let estimate = in_last_map(&poses.refined);
+    let estimate_as_tracked = in_last_map(&poses.as_tracked);
     // SE(3) alignment and translation error, as evo_ape -a.
     let compare = Compare::default();
     let ate = (estimate.len() >= 3)
         .then(|| score::score(&reference, &estimate, Metric::Ape, &compare))
         .transpose()?;
+    let ate_as_tracked_rmse = (estimate_as_tracked.len() >= 3)
+        .then(|| score::score(&reference, &estimate_as_tracked, Metric::Ape, &compare))
+        .transpose()?
+        .map(|r| r.stats.rmse);
     let ate_percent_of_path = ate
         .as_ref()
         .map(|r| 100.0 * r.stats.rmse / r.reference_path_length.max(1e-9));
@@ -178,11 +193,13 @@ pub fn run(
         events: summary.events.clone(),
         median_ms: medians(&summary),
         ate,
+        ate_as_tracked_rmse,
         ate_percent_of_path,
         semantics,
         semantics_error,
         model,
         estimate,
+        estimate_as_tracked,
         reference,
     })
 }
@@ -218,6 +235,9 @@ pub fn print_table(run: &ScenarioRun) {
             score::print_table(report);
             if let Some(p) = run.ate_percent_of_path {
                 println!("ATE RMSE is {p:.3} % of the path");
+            }
+            if let Some(rmse) = run.ate_as_tracked_rmse {
+                println!("ATE RMSE of the poses as tracked at the time: {rmse:.6} m");
             }
         }
         None => println!("ATE: fewer than 3 tracked poses"),

@@ -191,7 +191,8 @@ struct TrajectoryQuery {
     map: Option<u32>,
 }
 
-/// Every pose tracking gave the robot, oldest first, as JSON or as a TUM trajectory file.
+/// Every tracked pose of the robot, oldest first, each moved with its reference keyframe as the
+/// map was refined since; as JSON or as a TUM trajectory file.
 #[utoipa::path(
     get,
     path = "/api/v1/robots/{robot_id}/trajectory",

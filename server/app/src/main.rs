@@ -69,9 +69,13 @@ enum Command {
     /// pipeline without the network, and write the tracked trajectory.
     Offline {
         dataset: PathBuf,
-        /// TUM trajectory file to write (poses of the map the run ends in).
+        /// TUM trajectory file to write (poses of the map the run ends in, each moved with its
+        /// reference keyframe as the map was adjusted: the best estimate at the end).
         #[arg(long)]
         trajectory: Option<PathBuf>,
+        /// TUM file of the same frames' poses as tracking gave them at the time.
+        #[arg(long)]
+        as_tracked: Option<PathBuf>,
         /// Building model JSON to write (the map the run ends in; `vsgraphs-eval semantics`
         /// scores it).
         #[arg(long)]
@@ -212,6 +216,7 @@ async fn main() -> anyhow::Result<()> {
         Command::Offline {
             dataset,
             trajectory,
+            as_tracked,
             model,
             limit,
         } => {
@@ -228,13 +233,21 @@ async fn main() -> anyhow::Result<()> {
             })
             .await??;
             print_offline(&summary);
-            if let Some(path) = trajectory {
+            for (path, poses, what) in [
+                (trajectory, &poses.refined, "trajectory"),
+                (as_tracked, &poses.as_tracked, "as tracked"),
+            ] {
+                let Some(path) = path else { continue };
                 let map = poses.last().map(|p| p.map);
-                let kept: Vec<_> = poses.into_iter().filter(|p| Some(p.map) == map).collect();
+                let kept: Vec<_> = poses
+                    .iter()
+                    .filter(|p| Some(p.map) == map)
+                    .copied()
+                    .collect();
                 vsgraphs_server::offline::write_tum(&path, &kept)
                     .with_context(|| format!("writing {}", path.display()))?;
                 println!(
-                    "trajectory: {} poses of map {} in {}",
+                    "{what}: {} poses of map {} in {}",
                     kept.len(),
                     map.unwrap_or(0),
                     path.display()

@@ -58,6 +58,30 @@ pub fn map_view(map: &Map, index: usize, updated_ns: u64) -> MapView {
     }
 }
 
+/// The `Se3` an API pose stands for (the quaternion renormalised).
+pub fn se3_from_api(pose: &Pose) -> Se3 {
+    let [x, y, z] = pose.translation_m;
+    let [qx, qy, qz, qw] = pose.rotation_xyzw;
+    Se3 {
+        rotation: nalgebra::UnitQuaternion::from_quaternion(nalgebra::Quaternion::new(
+            qw, qx, qy, qz,
+        )),
+        translation: nalgebra::Vector3::new(x, y, z),
+    }
+}
+
+/// A frame's current estimate in a map snapshot: its anchor keyframe's pose there times the
+/// frame's pose relative to it (`None` when the snapshot lacks that keyframe).
+pub fn anchored_in_view(view: &MapView, anchor: &vsgraphs_slam::Anchor) -> Option<Se3> {
+    let id = anchor.keyframe.0;
+    // Keyframes are listed by id, so the id is the index; search in case that ever changes.
+    let keyframe = match view.keyframes.get(id as usize) {
+        Some(k) if k.id == id => k,
+        _ => view.keyframes.iter().find(|k| k.id == id)?,
+    };
+    Some(se3_from_api(&keyframe.world_from_camera).compose(&anchor.keyframe_from_camera))
+}
+
 /// Every `⌈n / at_most⌉`-th item, so that at most `at_most` remain, spread over the whole list.
 pub fn decimate<T: Clone>(items: &[T], at_most: usize) -> Vec<T> {
     if at_most == 0 {

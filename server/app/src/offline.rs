@@ -61,6 +61,17 @@ pub struct OfflineFrame {
     pub depth: DepthImage,
 }
 
+/// A run's tracked frames, oldest first, two ways.
+#[derive(Clone, Debug, Default)]
+pub struct Trajectories {
+    /// Each frame's pose moved with its reference keyframe as the map was adjusted after it was
+    /// tracked: the best estimate at the end, and what `--trajectory` writes and the API serves
+    /// (ORB-SLAM writes its trajectory files the same way).
+    pub refined: Vec<TrajectoryPose>,
+    /// Each frame's pose as tracking gave it at the time (what a robot was told live).
+    pub as_tracked: Vec<TrajectoryPose>,
+}
+
 /// Runs `dataset` through the pipeline; `progress(done, total)` is called after every frame.
 /// Returns the summary and every tracked pose.
 pub fn run(
@@ -68,7 +79,7 @@ pub fn run(
     dataset: &Dataset,
     limit: Option<usize>,
     progress: impl FnMut(usize, usize),
-) -> anyhow::Result<(OfflineSummary, Vec<TrajectoryPose>)> {
+) -> anyhow::Result<(OfflineSummary, Trajectories)> {
     let total = limit.map_or(dataset.frames.len(), |l| l.min(dataset.frames.len()));
     let frames = dataset.frames.iter().take(total).map(|files| {
         load_frame(files, DepthEncoding::Rvl).map(|(colour, depth, _)| OfflineFrame {
@@ -100,7 +111,7 @@ pub fn run_frames(
     source: FrameSource<'_>,
     frames: impl Iterator<Item = Result<OfflineFrame, String>>,
     mut progress: impl FnMut(usize, usize),
-) -> anyhow::Result<(OfflineSummary, Vec<TrajectoryPose>)> {
+) -> anyhow::Result<(OfflineSummary, Trajectories)> {
     let mut processor = FrameProcessor::new(
         &config.markers,
         &config.tracking,
@@ -110,6 +121,7 @@ pub fn run_frames(
     let total = source.total;
     let mut summary = OfflineSummary::default();
     let mut poses = Vec::new();
+    let mut anchors = Vec::new();
     let mut previous: Option<FrameHeader> = None;
     let mut first_ns = None;
     for (sequence, frame) in frames.enumerate() {
@@ -176,16 +188,17 @@ pub fn run_frames(
                         .events
                         .push((timestamp_ns as f64 * 1e-9, event.clone()));
                 }
-                r.world_from_camera.map(|p| (r.map, p))
+                r.world_from_camera.map(|p| (r.map, p, r.anchor))
             });
             match (tracking.state, pose) {
-                (TrackingState::Tracking, Some((map, pose))) => {
+                (TrackingState::Tracking, Some((map, pose, anchor))) => {
                     summary.tracked += 1;
                     poses.push(TrajectoryPose {
                         timestamp_ns: source_ns,
                         map: map as u32,
                         world_from_camera: crate::model::api_pose(&pose),
                     });
+                    anchors.push(anchor);
                 }
                 _ => summary.untracked += 1,
             }
@@ -208,8 +221,24 @@ pub fn run_frames(
             .map(|(i, map)| crate::model::map_view(map, i, end_ns))
             .collect();
     }
+    // As the API does: each pose follows its anchor keyframe in its map's last snapshot.
+    let mut refined = poses.clone();
+    for (pose, anchor) in refined.iter_mut().zip(&anchors) {
+        let moved = anchor.as_ref().and_then(|a| {
+            crate::model::anchored_in_view(summary.map_views.get(pose.map as usize)?, a)
+        });
+        if let Some(p) = moved {
+            pose.world_from_camera = crate::model::api_pose(&p);
+        }
+    }
     summary.elapsed = started.elapsed();
-    Ok((summary, poses))
+    Ok((
+        summary,
+        Trajectories {
+            refined,
+            as_tracked: poses,
+        },
+    ))
 }
 
 /// Poses as a trajectory (stamps in seconds).

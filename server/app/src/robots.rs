@@ -13,6 +13,7 @@ use vsgraphs_proto::api::{
     self, FrameCounters, FrameDetections, MapView, Presence, RobotStatus, Timing, TrackingStatus,
     TrajectoryPose,
 };
+use vsgraphs_slam::Anchor;
 
 /// Window over which rate and latency are reported.
 const TIMING_WINDOW: Duration = Duration::from_secs(5);
@@ -51,8 +52,9 @@ struct RobotState {
     tracking: Option<TrackingStatus>,
     /// (when, features ms, tracking ms, mapping ms, local BA ms) of recently tracked frames.
     tracking_recent: VecDeque<(Instant, f64, f64, f64, f64)>,
-    /// Every tracked pose (72 bytes each: an hour at 30 Hz is under 8 MB).
-    trajectory: Vec<TrajectoryPose>,
+    /// Every tracked pose as tracking gave it, with its anchor keyframe (136 bytes each: an
+    /// hour at 30 Hz is under 15 MB).
+    trajectory: Vec<(TrajectoryPose, Option<Anchor>)>,
     /// The latest snapshot of each map of the robot's Atlas, by index.
     maps: BTreeMap<u32, Arc<MapView>>,
 }
@@ -199,11 +201,14 @@ impl RobotEntry {
                         let pose = crate::model::api_pose(&pose);
                         status.world_from_camera = Some(pose);
                         status.pose_timestamp_ns = Some(timestamp_ns);
-                        state.trajectory.push(TrajectoryPose {
-                            timestamp_ns,
-                            map: result.map as u32,
-                            world_from_camera: pose,
-                        });
+                        state.trajectory.push((
+                            TrajectoryPose {
+                                timestamp_ns,
+                                map: result.map as u32,
+                                world_from_camera: pose,
+                            },
+                            result.anchor,
+                        ));
                     }
                     None => status.frames_untracked += 1,
                 }
@@ -218,9 +223,30 @@ impl RobotEntry {
         self.state().maps.values().cloned().collect()
     }
 
-    /// Every pose tracking gave this robot, oldest first.
+    /// Every pose tracking gave this robot, oldest first, each moved with its anchor keyframe
+    /// as the latest snapshot of its map has it (the best estimate so far; see
+    /// [`vsgraphs_slam::Anchor`]).
     pub fn trajectory(&self) -> Vec<TrajectoryPose> {
-        self.state().trajectory.clone()
+        // Copied out, so the lock is not held while the poses are composed.
+        let (trajectory, maps) = {
+            let state = self.state();
+            (state.trajectory.clone(), state.maps.clone())
+        };
+        trajectory
+            .iter()
+            .map(|(pose, anchor)| {
+                let refined = anchor
+                    .as_ref()
+                    .and_then(|a| crate::model::anchored_in_view(maps.get(&pose.map)?, a));
+                match refined {
+                    Some(p) => TrajectoryPose {
+                        world_from_camera: crate::model::api_pose(&p),
+                        ..*pose
+                    },
+                    None => *pose,
+                }
+            })
+            .collect()
     }
 
     pub fn set_presence(&self, presence: Presence) {

@@ -15,7 +15,7 @@ pub mod matcher;
 pub mod tracking;
 
 pub use frame::{Descriptor, Frame, Keypoint, Rig};
-pub use map::{Atlas, KeyFrame, KeyFrameId, Map, MapPoint, MapPointId};
+pub use map::{Anchor, Atlas, KeyFrame, KeyFrameId, Map, MapPoint, MapPointId};
 pub use markers::{MapMarker, MarkerSighting};
 pub use tracking::{FrameResult, StageTimes, TrackError, Tracker, TrackerConfig, TrackingState};
 pub use vsgraphs_sgraph::{Pinhole, Se3};

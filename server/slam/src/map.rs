@@ -5,7 +5,7 @@
 use crate::frame::{hamming, Descriptor, Frame, Rig};
 use crate::markers::MapMarker;
 use nalgebra::Vector3;
-use std::collections::{BTreeMap, HashMap};
+use std::collections::BTreeMap;
 use vsgraphs_sgraph::Se3;
 
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, PartialOrd, Ord)]
@@ -27,6 +27,14 @@ impl KeyFrame {
     pub fn camera_centre(&self) -> Vector3<f64> {
         self.world_from_camera.translation
     }
+}
+
+/// A frame's pose relative to a keyframe of its map (ORB-SLAM keeps the same per frame for
+/// its trajectory files): the frame's best estimate follows the keyframe as it is adjusted.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Anchor {
+    pub keyframe: KeyFrameId,
+    pub keyframe_from_camera: Se3,
 }
 
 /// A 3-D point seen by keyframes.
@@ -68,6 +76,14 @@ pub struct Map {
 }
 
 impl Map {
+    /// The current estimate of a frame anchored to one of this map's keyframes (`None` for a
+    /// keyframe the map does not hold).
+    pub fn anchored_pose(&self, anchor: &Anchor) -> Option<Se3> {
+        self.keyframes
+            .get(anchor.keyframe.0 as usize)
+            .map(|k| k.world_from_camera.compose(&anchor.keyframe_from_camera))
+    }
+
     pub fn keyframe(&self, id: KeyFrameId) -> &KeyFrame {
         &self.keyframes[id.0 as usize]
     }
@@ -206,6 +222,13 @@ impl Map {
     /// Recomputes a point's viewing direction, distance range and distinctive descriptor from
     /// its observations.
     pub fn update_geometry(&mut self, point: MapPointId, rig: &Rig) {
+        self.update_normal_and_depth(point, rig);
+        self.update_descriptor(point);
+    }
+
+    /// Recomputes a point's viewing direction and distance range: enough after it moved
+    /// without gaining or losing observations (as after bundle adjustment).
+    pub fn update_normal_and_depth(&mut self, point: MapPointId, rig: &Rig) {
         let p = &self.points[point.0 as usize];
         if p.observations.is_empty() {
             return;
@@ -221,17 +244,25 @@ impl Map {
         let level = usize::from(reference.frame.keypoints[i].level);
         let max_distance = distance * rig.scale(level);
         let min_distance = max_distance / rig.scale(rig.levels - 1);
+        let p = &mut self.points[point.0 as usize];
+        p.normal = normal.try_normalize(1e-12).unwrap_or(Vector3::z());
+        p.max_distance = max_distance;
+        p.min_distance = min_distance;
+    }
+
+    /// Recomputes a point's distinctive descriptor (ORB-SLAM's: the observation's descriptor
+    /// with the least median distance to the others), after its observations changed.
+    pub fn update_descriptor(&mut self, point: MapPointId) {
+        let p = &self.points[point.0 as usize];
+        if p.observations.is_empty() {
+            return;
+        }
         let descriptors: Vec<Descriptor> = p
             .observations
             .iter()
             .map(|&(k, i)| self.keyframe(k).frame.descriptors[i])
             .collect();
-        let descriptor = distinctive(&descriptors);
-        let p = &mut self.points[point.0 as usize];
-        p.normal = normal.try_normalize(1e-12).unwrap_or(Vector3::z());
-        p.max_distance = max_distance;
-        p.min_distance = min_distance;
-        p.descriptor = descriptor;
+        self.points[point.0 as usize].descriptor = distinctive(&descriptors);
     }
 
     /// [`Map::covisible`] as of the last [`Map::refresh_neighbours`] of `keyframe`: tracking asks
@@ -258,15 +289,23 @@ impl Map {
 
     /// Keyframes sharing points with `keyframe`, most shared first, with the count.
     pub fn covisible(&self, keyframe: KeyFrameId) -> Vec<(KeyFrameId, usize)> {
-        let mut counts: HashMap<KeyFrameId, usize> = HashMap::new();
+        // Counted in a slot per keyframe (ids are dense), cheaper than hashing each sighting.
+        let mut counts = vec![0u32; self.keyframes.len()];
+        let mut list: Vec<(KeyFrameId, usize)> = Vec::new();
         for point in self.keyframe(keyframe).points.iter().flatten() {
             for &(k, _) in &self.point(*point).observations {
                 if k != keyframe {
-                    *counts.entry(k).or_default() += 1;
+                    let count = &mut counts[k.0 as usize];
+                    if *count == 0 {
+                        list.push((k, 0));
+                    }
+                    *count += 1;
                 }
             }
         }
-        let mut list: Vec<_> = counts.into_iter().collect();
+        for (k, shared) in &mut list {
+            *shared = counts[k.0 as usize] as usize;
+        }
         list.sort_by(|a, b| b.1.cmp(&a.1).then(a.0.cmp(&b.0)));
         list
     }

@@ -513,6 +513,7 @@ pub fn apply_local_ba(
     }
     // Observations the adjusted map does not explain are dropped.
     let mut outliers = 0;
+    let mut lost_observations = HashSet::new();
     for &(p, k, i) in &observed {
         if map.point(p).bad {
             continue;
@@ -539,12 +540,18 @@ pub fn apply_local_ba(
             .z;
         if depth <= 0.0 || chi2(&rig.camera, rig.bf, &kf.world_from_camera, &observation) > limit {
             map.erase_observation(p, k);
+            lost_observations.insert(p);
             outliers += 1;
         }
     }
+    // Moved points need their viewing range again; only those that lost an observation need
+    // their descriptor again.
     for &p in &points {
         if !map.point(p).bad {
-            map.update_geometry(p, rig);
+            map.update_normal_and_depth(p, rig);
+            if lost_observations.contains(&p) {
+                map.update_descriptor(p);
+            }
         }
     }
     Ok(LocalBaReport {

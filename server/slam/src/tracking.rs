@@ -17,7 +17,7 @@
 //! Mapped markers in view add their corners to every pose optimisation; see [`crate::markers`].
 
 use crate::frame::{Descriptor, Frame, Rig};
-use crate::map::{Atlas, KeyFrameId, Map, MapPointId};
+use crate::map::{Anchor, Atlas, KeyFrameId, Map, MapPointId};
 use crate::mapping::{self, LocalBaJob, SolvedLocalBa};
 use crate::markers::{self, MarkerSighting};
 use crate::matcher::{self, Projected, SearchOptions, TH_HIGH};
@@ -130,6 +130,9 @@ pub struct FrameResult {
     /// Mapped markers in view whose corners constrained the pose.
     pub markers_in_view: usize,
     pub keyframe: Option<KeyFrameId>,
+    /// The pose relative to its reference keyframe, when tracked: as later adjustments move
+    /// that keyframe, the frame's best estimate moves with it ([`Map::anchored_pose`]).
+    pub anchor: Option<Anchor>,
     /// Something worth a log line: a map started, tracking lost, relocalised.
     pub event: Option<String>,
     pub times: StageTimes,
@@ -387,6 +390,7 @@ impl Tracker {
             inliers: 0,
             markers_in_view: 0,
             keyframe: None,
+            anchor: None,
             event,
             times,
         };
@@ -512,6 +516,10 @@ impl Tracker {
         result.world_from_camera = Some(pose);
         result.inliers = created;
         result.keyframe = Some(keyframe);
+        result.anchor = Some(Anchor {
+            keyframe,
+            keyframe_from_camera: Se3::identity(),
+        });
         result.map = self.atlas.active_index().unwrap_or(0);
         result.event = Some(format!("map {} started with {created} points", result.map));
         None
@@ -1005,6 +1013,15 @@ impl Tracker {
             self.reference = Some(k);
             keyframe = Some(k);
         }
+        result.anchor = self.reference.map(|k| Anchor {
+            keyframe: k,
+            keyframe_from_camera: self
+                .map()
+                .keyframe(k)
+                .world_from_camera
+                .inverse()
+                .compose(&world_from_camera),
+        });
         self.last = Some(LastFrame {
             frame,
             world_from_camera,
