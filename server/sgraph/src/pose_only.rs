@@ -13,7 +13,7 @@
 //! [`ProjectionFactor`]: crate::factors::projection::ProjectionFactor
 
 use crate::camera::{Pinhole, MIN_DEPTH};
-use crate::factors::projection::{in_camera, point_in_camera_jacobian};
+use crate::factors::projection::point_in_camera_jacobian;
 use crate::lie::Se3;
 use nalgebra::{Matrix3, Matrix6, Vector2, Vector3, Vector6};
 
@@ -53,7 +53,7 @@ impl Default for PoseOnlyOptions {
         Self {
             rounds: 4,
             iterations_per_round: 10,
-            step_tolerance: 1e-9,
+            step_tolerance: 1e-6,
         }
     }
 }
@@ -69,40 +69,80 @@ pub struct PoseOnlyResult {
     pub inlier_chi2: f64,
 }
 
+/// A pose as the camera sees the world: its rotation matrix is formed once per pose, not once
+/// per observation.
+struct CameraFromWorld {
+    rotation: Matrix3<f64>,
+    /// The camera centre in the world.
+    centre: Vector3<f64>,
+}
+
+impl CameraFromWorld {
+    fn new(world_from_camera: &Se3) -> Self {
+        Self {
+            rotation: world_from_camera
+                .rotation
+                .to_rotation_matrix()
+                .into_inner()
+                .transpose(),
+            centre: world_from_camera.translation,
+        }
+    }
+
+    fn transform(&self, p_w: &Vector3<f64>) -> Vector3<f64> {
+        self.rotation * (p_w - self.centre)
+    }
+}
+
+/// Residual `r` of one observation (rows beyond its dimension are zero) and the point in the
+/// camera.
+fn residual(
+    camera: &Pinhole,
+    bf: f64,
+    view: &CameraFromWorld,
+    observation: &PoseObservation,
+) -> (Vector3<f64>, Vector3<f64>) {
+    let p_c = view.transform(&observation.point_in_world);
+    let uv = camera.project(&p_c);
+    let r = match observation.measured {
+        Measurement::Mono(m) => Vector3::new(uv.x - m.x, uv.y - m.y, 0.0),
+        Measurement::Stereo(m) => {
+            let z = p_c.z.max(MIN_DEPTH);
+            Vector3::new(uv.x - m.x, uv.y - m.y, uv.x - bf / z - m.z)
+        }
+    };
+    (r, p_c)
+}
+
 /// Residual `r` and `∂r/∂δ` (6 columns) of one observation; rows beyond its dimension are zero.
 fn linearise(
     camera: &Pinhole,
     bf: f64,
-    world_from_camera: &Se3,
+    view: &CameraFromWorld,
     observation: &PoseObservation,
-) -> (Vector3<f64>, nalgebra::Matrix3x6<f64>, usize) {
-    let (_, p_c) = in_camera(world_from_camera, &observation.point_in_world);
-    let uv = camera.project(&p_c);
+) -> (Vector3<f64>, nalgebra::Matrix3x6<f64>) {
+    let (r, p_c) = residual(camera, bf, view, observation);
     let d_uv = camera.project_jacobian(&p_c);
     let d_point = point_in_camera_jacobian(&p_c);
     let mut dg = Matrix3::zeros();
     dg.fixed_view_mut::<2, 3>(0, 0).copy_from(&d_uv);
-    match observation.measured {
-        Measurement::Mono(m) => {
-            let r = Vector3::new(uv.x - m.x, uv.y - m.y, 0.0);
-            (r, dg * d_point, 2)
-        }
-        Measurement::Stereo(m) => {
-            let z = p_c.z.max(MIN_DEPTH);
-            dg.fixed_view_mut::<1, 3>(2, 0).copy_from(&d_uv.row(0));
-            if p_c.z >= MIN_DEPTH {
-                dg[(2, 2)] += bf / (z * z);
-            }
-            let r = Vector3::new(uv.x - m.x, uv.y - m.y, uv.x - bf / z - m.z);
-            (r, dg * d_point, 3)
+    if let Measurement::Stereo(_) = observation.measured {
+        let z = p_c.z.max(MIN_DEPTH);
+        dg.fixed_view_mut::<1, 3>(2, 0).copy_from(&d_uv.row(0));
+        if p_c.z >= MIN_DEPTH {
+            dg[(2, 2)] += bf / (z * z);
         }
     }
+    (r, dg * d_point)
 }
 
 /// χ² of one observation at a pose.
 pub fn chi2(camera: &Pinhole, bf: f64, world_from_camera: &Se3, o: &PoseObservation) -> f64 {
-    let (r, _, _) = linearise(camera, bf, world_from_camera, o);
-    r.norm_squared() * o.information
+    chi2_in(camera, bf, &CameraFromWorld::new(world_from_camera), o)
+}
+
+fn chi2_in(camera: &Pinhole, bf: f64, view: &CameraFromWorld, o: &PoseObservation) -> f64 {
+    residual(camera, bf, view, o).0.norm_squared() * o.information
 }
 
 fn threshold(o: &PoseObservation) -> f64 {
@@ -121,12 +161,13 @@ fn cost(
     included: &[bool],
     robust: bool,
 ) -> f64 {
+    let view = CameraFromWorld::new(pose);
     observations
         .iter()
         .zip(included)
         .filter(|(_, &inc)| inc)
         .map(|(o, _)| {
-            let s = chi2(camera, bf, pose, o);
+            let s = chi2_in(camera, bf, &view, o);
             let d2 = threshold(o);
             if robust && s > d2 {
                 2.0 * (d2 * s).sqrt() - d2
@@ -160,16 +201,18 @@ pub fn optimise_pose(
             robust,
             options,
         );
+        let view = CameraFromWorld::new(&pose);
         for (o, inc) in observations.iter().zip(included.iter_mut()) {
-            *inc = chi2(camera, bf, &pose, o) <= threshold(o);
+            *inc = chi2_in(camera, bf, &view, o) <= threshold(o);
         }
         if included.iter().filter(|&&i| i).count() < 3 {
             break;
         }
     }
     let mut inlier_chi2 = 0.0;
+    let view = CameraFromWorld::new(&pose);
     for (o, inc) in observations.iter().zip(included.iter_mut()) {
-        let s = chi2(camera, bf, &pose, o);
+        let s = chi2_in(camera, bf, &view, o);
         *inc = s <= threshold(o);
         if *inc {
             inlier_chi2 += s;
@@ -197,8 +240,9 @@ fn levenberg_marquardt(
     for _ in 0..options.iterations_per_round {
         let mut h = Matrix6::<f64>::zeros();
         let mut g = Vector6::<f64>::zeros();
+        let view = CameraFromWorld::new(pose);
         for (o, _) in observations.iter().zip(included).filter(|(_, &i)| i) {
-            let (r, j, _) = linearise(camera, bf, pose, o);
+            let (r, j) = linearise(camera, bf, &view, o);
             let s = r.norm_squared() * o.information;
             let d2 = threshold(o);
             // Huber's weight ρ'(s): 1 inside the threshold, √(d²/s) beyond.
