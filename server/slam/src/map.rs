@@ -76,14 +76,6 @@ pub struct Map {
 }
 
 impl Map {
-    /// The current estimate of a frame anchored to one of this map's keyframes (`None` for a
-    /// keyframe the map does not hold).
-    pub fn anchored_pose(&self, anchor: &Anchor) -> Option<Se3> {
-        self.keyframes
-            .get(anchor.keyframe.0 as usize)
-            .map(|k| k.world_from_camera.compose(&anchor.keyframe_from_camera))
-    }
-
     pub fn keyframe(&self, id: KeyFrameId) -> &KeyFrame {
         &self.keyframes[id.0 as usize]
     }

@@ -131,7 +131,8 @@ pub struct FrameResult {
     pub markers_in_view: usize,
     pub keyframe: Option<KeyFrameId>,
     /// The pose relative to its reference keyframe, when tracked: as later adjustments move
-    /// that keyframe, the frame's best estimate moves with it ([`Map::anchored_pose`]).
+    /// that keyframe, the frame's best estimate moves with it (the keyframe's pose then times
+    /// `keyframe_from_camera`).
     pub anchor: Option<Anchor>,
     /// Something worth a log line: a map started, tracking lost, relocalised.
     pub event: Option<String>,
