@@ -245,13 +245,10 @@ pub fn run_frames(
 pub fn trajectory(poses: &[TrajectoryPose]) -> Trajectory {
     let mut trajectory = Trajectory::default();
     for p in poses {
-        let [x, y, z] = p.world_from_camera.translation_m;
-        let [qx, qy, qz, qw] = p.world_from_camera.rotation_xyzw;
-        let rotation =
-            nalgebra::UnitQuaternion::from_quaternion(nalgebra::Quaternion::new(qw, qx, qy, qz));
+        let pose = crate::model::se3_from_api(&p.world_from_camera);
         trajectory.push(
             p.timestamp_ns as f64 * 1e-9,
-            nalgebra::Isometry3::from_parts(nalgebra::Translation3::new(x, y, z), rotation),
+            nalgebra::Isometry3::from_parts(pose.translation.into(), pose.rotation),
         );
     }
     trajectory
