@@ -5,6 +5,7 @@
 //! Conventions: perturbations act on the right (`X ⊕ δ = X · Exp(δ)`); an SE(3) tangent is
 //! `[ρ; φ]` (translation first); the cost is `Σ ρ(rᵀΩr)`, g2o's "chi2" without kernels.
 
+mod bundle;
 pub mod camera;
 pub mod factor;
 pub mod factors;

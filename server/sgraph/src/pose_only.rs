@@ -13,7 +13,7 @@
 //! [`ProjectionFactor`]: crate::factors::projection::ProjectionFactor
 
 use crate::camera::{Pinhole, MIN_DEPTH};
-use crate::factors::projection::point_in_camera_jacobian;
+use crate::factors::projection::{point_in_camera_jacobian, CameraFromWorld};
 use crate::lie::Se3;
 use nalgebra::{Matrix3, Matrix6, Vector2, Vector3, Vector6};
 
@@ -67,31 +67,6 @@ pub struct PoseOnlyResult {
     pub inlier_count: usize,
     /// Sum of the inliers' χ² at the final pose.
     pub inlier_chi2: f64,
-}
-
-/// A pose as the camera sees the world: its rotation matrix is formed once per pose, not once
-/// per observation.
-struct CameraFromWorld {
-    rotation: Matrix3<f64>,
-    /// The camera centre in the world.
-    centre: Vector3<f64>,
-}
-
-impl CameraFromWorld {
-    fn new(world_from_camera: &Se3) -> Self {
-        Self {
-            rotation: world_from_camera
-                .rotation
-                .to_rotation_matrix()
-                .into_inner()
-                .transpose(),
-            centre: world_from_camera.translation,
-        }
-    }
-
-    fn transform(&self, p_w: &Vector3<f64>) -> Vector3<f64> {
-        self.rotation * (p_w - self.centre)
-    }
 }
 
 /// Residual `r` of one observation (rows beyond its dimension are zero) and the point in the

@@ -1,5 +1,6 @@
 //! A problem: values plus weighted factors, and its cost.
 
+use crate::bundle::{PoseViews, Reprojection};
 use crate::factor::{Factor, Information, Kernel};
 use crate::values::{Values, VarId};
 use nalgebra::DMatrixViewMut;
@@ -33,6 +34,8 @@ pub(crate) struct Entry {
     /// Column of each key's block in the factor's Jacobian.
     pub columns: Vec<usize>,
     pub total_dim: usize,
+    /// The factor's data again when it is a reprojection that [`crate::bundle`] evaluates.
+    pub reprojection: Option<Reprojection>,
 }
 
 /// Values and the factors between them.
@@ -42,6 +45,8 @@ pub struct Problem {
     pub(crate) entries: Vec<Entry>,
     /// Changes whenever the sparsity of the normal equations may change.
     pub(crate) structure: u64,
+    /// Factors with [`Entry::reprojection`]: passes over the factors then need [`PoseViews`].
+    pub(crate) reprojections: usize,
 }
 
 impl Problem {
@@ -50,6 +55,7 @@ impl Problem {
             values,
             entries: Vec::new(),
             structure: 0,
+            reprojections: 0,
         }
     }
 
@@ -121,12 +127,15 @@ impl Problem {
                 information: information.dim(),
             });
         }
+        let reprojection = Reprojection::of(&factor, information.isotropic_scale());
+        self.reprojections += usize::from(reprojection.is_some());
         self.entries.push(Entry {
             factor: Box::new(factor),
             information,
             kernel,
             columns,
             total_dim,
+            reprojection,
         });
         self.structure += 1;
         Ok(FactorId(self.entries.len() as u32 - 1))
@@ -142,32 +151,52 @@ impl Problem {
 
     /// Total cost `Σ ρ(rᵀΩr)` (g2o's "chi2" when no kernel is set).
     pub fn cost(&self) -> f64 {
-        cost_of(&self.entries, &self.values, 1)
+        cost_of(
+            &self.entries,
+            &self.values,
+            &self.pose_views(&self.values),
+            1,
+        )
+    }
+
+    /// The pose views that passes over this problem's factors need at `values`.
+    pub(crate) fn pose_views(&self, values: &Values) -> PoseViews {
+        PoseViews::new(values, self.reprojections > 0)
     }
 
     /// Cost of each factor, `ρ(rᵀΩr)`, e.g. to find outliers.
     pub fn factor_costs(&self) -> Vec<f64> {
         let mut r = Vec::new();
+        let views = self.pose_views(&self.values);
         self.entries
             .iter()
-            .map(|e| entry_cost(e, &self.values, &mut r))
+            .map(|e| entry_cost(e, &self.values, &views, &mut r))
             .collect()
     }
 }
 
-/// Total cost, summed over `workers` equal runs of factors on as many threads.
-pub(crate) fn cost_of(entries: &[Entry], values: &Values, workers: usize) -> f64 {
+/// Total cost, summed over `workers` equal runs of factors on as many threads; `views` are
+/// those of `values`.
+pub(crate) fn cost_of(
+    entries: &[Entry],
+    values: &Values,
+    views: &PoseViews,
+    workers: usize,
+) -> f64 {
     let chunk = entries.len().div_ceil(workers.max(1)).max(1);
     let parts = crate::parallel::run(entries.chunks(chunk).collect(), |part| {
         let mut r = Vec::new();
         part.iter()
-            .map(|e| entry_cost(e, values, &mut r))
+            .map(|e| entry_cost(e, values, views, &mut r))
             .sum::<f64>()
     });
     parts.iter().sum()
 }
 
-fn entry_cost(e: &Entry, values: &Values, r: &mut Vec<f64>) -> f64 {
+fn entry_cost(e: &Entry, values: &Values, views: &PoseViews, r: &mut Vec<f64>) -> f64 {
+    if let Some(fast) = &e.reprojection {
+        return fast.cost(views, values, e.kernel);
+    }
     let m = e.factor.residual_dim();
     r.clear();
     r.resize(m, 0.0);

@@ -153,7 +153,10 @@ impl Solver {
         let system = self.system.as_mut().expect("analysed above");
         let entries = &problem.entries;
         let workers = system.workers();
-        let initial_cost = cost_of(entries, &problem.values, workers);
+        // Pose views go with their values: a candidate's serve its cost and, once accepted,
+        // the next linearisation.
+        let mut views = problem.pose_views(&problem.values);
+        let initial_cost = cost_of(entries, &problem.values, &views, workers);
         if !initial_cost.is_finite() {
             return Err(SolveError::NonFiniteInitialCost(initial_cost));
         }
@@ -179,13 +182,15 @@ impl Solver {
         let mut first_step_norm = None;
         let mut delta = Vec::new();
         let mut candidate = problem.values.clone();
+        let mut candidate_views = views.clone();
+        let need_views = problem.reprojections > 0;
         let mut needs_linearize = true;
         let mut linearize_time = Duration::ZERO;
         report.termination = Termination::MaxIterations;
         for iteration in 1..=opts.max_iterations {
             if needs_linearize {
                 let t = Instant::now();
-                system.linearize(entries, &problem.values);
+                system.linearize(entries, &problem.values, &views);
                 linearize_time = t.elapsed();
                 needs_linearize = false;
                 if system.gradient_max() < opts.gradient_tolerance {
@@ -235,12 +240,14 @@ impl Solver {
                     let step_norm = delta.iter().map(|v| v * v).sum::<f64>().sqrt();
                     it.step_norm = step_norm;
                     apply_step(&problem.values, system.offsets(), &delta, &mut candidate);
-                    let new_cost = cost_of(entries, &candidate, workers);
+                    candidate_views.update(&candidate, need_views);
+                    let new_cost = cost_of(entries, &candidate, &candidate_views, workers);
                     it.tried_cost = new_cost;
                     let predicted = system.predicted_decrease(damping, &delta);
                     let actual = cost - new_cost;
                     if new_cost.is_finite() && actual > 0.0 {
                         std::mem::swap(&mut problem.values, &mut candidate);
+                        std::mem::swap(&mut views, &mut candidate_views);
                         it.accepted = true;
                         it.cost = new_cost;
                         cost = new_cost;

@@ -10,10 +10,32 @@ use crate::lie::{hat, Se3};
 use crate::values::{Key, Kind, Values, VarId};
 use nalgebra::{DMatrixViewMut, Matrix3, Matrix3x6, Vector2, Vector3};
 
-/// A world point seen from keyframe `T = world_from_camera`: `(R_cw, p_c)` with `p_c = R_cw·(p − t)`.
-pub(crate) fn in_camera(t: &Se3, p_w: &Vector3<f64>) -> (Matrix3<f64>, Vector3<f64>) {
-    let camera_from_world = t.rotation.to_rotation_matrix().into_inner().transpose();
-    (camera_from_world, camera_from_world * (p_w - t.translation))
+/// A keyframe `T = world_from_camera` as its camera sees the world, `p_c = R_cw·(p − t)`, with
+/// the rotation matrix formed once: callers that project many points keep one per pose.
+#[derive(Clone, Copy, Debug)]
+pub(crate) struct CameraFromWorld {
+    /// `R_cw`.
+    pub rotation: Matrix3<f64>,
+    /// The camera centre in the world, `t`.
+    pub centre: Vector3<f64>,
+}
+
+impl CameraFromWorld {
+    pub fn new(world_from_camera: &Se3) -> Self {
+        Self {
+            rotation: world_from_camera
+                .rotation
+                .to_rotation_matrix()
+                .into_inner()
+                .transpose(),
+            centre: world_from_camera.translation,
+        }
+    }
+
+    #[inline(always)]
+    pub fn transform(&self, p_w: &Vector3<f64>) -> Vector3<f64> {
+        self.rotation * (p_w - self.centre)
+    }
 }
 
 /// `∂p_c/∂δ` for the camera pose: `[−I, [p_c]×]`.
@@ -87,7 +109,8 @@ impl Factor for StereoProjectionFactor {
     ) {
         let t = values.at::<Se3>(self.keys[0]);
         let p_w = values.at::<Vector3<f64>>(self.keys[1]);
-        let (camera_from_world, p_c) = in_camera(t, p_w);
+        let view = CameraFromWorld::new(t);
+        let p_c = view.transform(p_w);
         let uv = self.camera.project(&p_c);
         let z = p_c.z.max(MIN_DEPTH);
         residual[0] = uv.x - self.measured.x;
@@ -101,7 +124,7 @@ impl Factor for StereoProjectionFactor {
             if p_c.z >= MIN_DEPTH {
                 dg[(2, 2)] += self.bf / (z * z);
             }
-            write_jacobian::<3>(&mut jac, &dg, &p_c, &camera_from_world);
+            write_jacobian::<3>(&mut jac, &dg, &p_c, &view.rotation);
         }
     }
 }
@@ -151,13 +174,14 @@ impl Factor for ProjectionFactor {
     ) {
         let t = values.at::<Se3>(self.keys[0]);
         let p_w = values.at::<Vector3<f64>>(self.keys[1]);
-        let (camera_from_world, p_c) = in_camera(t, p_w);
+        let view = CameraFromWorld::new(t);
+        let p_c = view.transform(p_w);
         let uv = self.camera.project(&p_c);
         residual[0] = uv.x - self.measured.x;
         residual[1] = uv.y - self.measured.y;
         if let Some(mut jac) = jacobian {
             let dg = self.camera.project_jacobian(&p_c);
-            write_jacobian::<2>(&mut jac, &dg, &p_c, &camera_from_world);
+            write_jacobian::<2>(&mut jac, &dg, &p_c, &view.rotation);
         }
     }
 }

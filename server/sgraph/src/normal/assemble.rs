@@ -2,6 +2,7 @@
 //! blocks scattered to the places the analysis gave them.
 
 use super::{Scratch, Share, Structure};
+use crate::bundle::{PosePointBlocks, PoseViews};
 use crate::problem::Entry;
 use crate::values::Kind;
 use crate::values::Values;
@@ -24,16 +25,16 @@ pub(super) fn assemble(
     st: &Structure,
     share: &Share,
     entries: &[Entry],
-    values: &Values,
+    (values, views): (&Values, &PoseViews),
     out: Accumulators<'_>,
     scratch: &mut Scratch,
 ) -> f64 {
     #[cfg(target_arch = "x86_64")]
     if std::arch::is_x86_feature_detected!("avx2") {
         // SAFETY: the CPU has just been found to support AVX2.
-        return unsafe { assemble_avx2(st, share, entries, values, out, scratch) };
+        return unsafe { assemble_avx2(st, share, entries, (values, views), out, scratch) };
     }
-    assemble_portable(st, share, entries, values, out, scratch)
+    assemble_portable(st, share, entries, (values, views), out, scratch)
 }
 
 #[cfg(target_arch = "x86_64")]
@@ -42,11 +43,11 @@ unsafe fn assemble_avx2(
     st: &Structure,
     share: &Share,
     entries: &[Entry],
-    values: &Values,
+    (values, views): (&Values, &PoseViews),
     out: Accumulators<'_>,
     scratch: &mut Scratch,
 ) -> f64 {
-    assemble_portable(st, share, entries, values, out, scratch)
+    assemble_portable(st, share, entries, (values, views), out, scratch)
 }
 
 #[inline(always)]
@@ -54,29 +55,47 @@ fn assemble_portable(
     st: &Structure,
     share: &Share,
     entries: &[Entry],
-    values: &Values,
+    (values, views): (&Values, &PoseViews),
     out: Accumulators<'_>,
     scratch: &mut Scratch,
 ) -> f64 {
-    let Accumulators { h, g_r, g_l, v, w } = out;
+    let mut out = out;
     let nr = st.n_reduced;
     let g_l_start = nr + 3 * share.elim.start;
-    let Scratch { lin, jtj, jtr } = scratch;
+    let Scratch {
+        lin,
+        jtj,
+        jtr,
+        blocks,
+        pose_sums,
+    } = scratch;
+    // With pose blocks, a pose's own block is summed whole here (vectorised) and its upper
+    // triangle added to `H` once at the end.
+    pose_sums.clear();
+    pose_sums.resize(st.pose_blocks.unwrap_or(0), [0.0; 36]);
     let mut cost = 0.0;
     for &fi in &share.factors {
         let fi = fi as usize;
         let e = &entries[fi];
+        // A reprojection onto an eliminated point (the bulk of bundle adjustment): its blocks
+        // straight from `bundle`, written to their places.
+        if let Some(fast) = &e.reprojection {
+            let point = st.offset[fast.point.index()];
+            if point != usize::MAX && point >= nr {
+                cost += fast.blocks(views, values, e.kernel, blocks);
+                let pose = st.offset[fast.pose.index()];
+                scatter(st, share, (fi, pose), blocks, point, &mut out, pose_sums);
+                continue;
+            }
+        }
         cost += lin.linearize(e, values);
+        let keys = e.factor.keys();
+        let kinds = e.factor.kinds();
         let m = e.factor.residual_dim();
         let n = e.total_dim;
         let (jac, r) = (&lin.jacobian[..m * n], &lin.residual[..m]);
-        let keys = e.factor.keys();
-        let kinds = e.factor.kinds();
-        let slots = &st.slots[st.slot_start[fi]..st.slot_start[fi + 1]];
-        let elim_slots = &st.elim_slots[st.elim_start[fi]..st.elim_start[fi + 1]];
-        // A pose and an eliminated point (reprojection, the bulk of bundle adjustment): only
-        // the blocks that are kept are formed, sizes known at compile time, and written
-        // straight to their places.
+        // Another pose–point factor onto an eliminated point: only the blocks that are kept
+        // are formed, sizes known at compile time.
         if n == 9 && (m == 2 || m == 3) && kinds == [Kind::Pose, Kind::Point] {
             let point = st.offset[keys[1].index()];
             if point != usize::MAX && point >= nr {
@@ -86,43 +105,15 @@ fn assemble_portable(
                     pose_point_blocks::<2>(jac, r)
                 };
                 let pose = st.offset[keys[0].index()];
-                if pose != usize::MAX {
-                    add(&mut g_r[pose..pose + 6], &b.g_pose);
-                }
-                let p = point - g_l_start;
-                add(&mut g_l[p..p + 3], &b.g_point);
-                for slot in slots {
-                    // The pose's own block: the upper triangle of its 6 × 6, by column.
-                    for (k, col) in b.pose.iter().enumerate() {
-                        let base = st.col_ptr[slot.col0 + k] + slot.prefix;
-                        add(&mut h[base..base + k + 1], &col[..k + 1]);
-                    }
-                }
-                for s in elim_slots {
-                    if s.r == 1 {
-                        let v = &mut v[s.target - share.elim.start];
-                        for (c, col) in b.point.iter().enumerate() {
-                            for (rr, x) in col.iter().enumerate() {
-                                v[(rr, c)] += x;
-                            }
-                        }
-                    } else {
-                        let at = st.couplings[s.target].data - share.data.start;
-                        let w: &mut [f64; 18] = (&mut w[at..at + 18]).try_into().expect("6 × 3");
-                        for (c, col) in b.coupling.iter().enumerate() {
-                            if st.w_single {
-                                w[6 * c..6 * c + 6].copy_from_slice(col);
-                            } else {
-                                add(&mut w[6 * c..6 * c + 6], col);
-                            }
-                        }
-                    }
-                }
+                scatter(st, share, (fi, pose), &b, point, &mut out, pose_sums);
                 continue;
             }
         }
         // Anything else: the factor's own JᵀJ (full, column-major) and Jᵀr, then scattered by
         // block. Both are overwritten in full below.
+        let Accumulators { h, g_r, g_l, v, w } = &mut out;
+        let slots = &st.slots[st.slot_start[fi]..st.slot_start[fi + 1]];
+        let elim_slots = &st.elim_slots[st.elim_start[fi]..st.elim_start[fi + 1]];
         jtj.resize(n * n, 0.0);
         jtr.resize(n, 0.0);
         // The shapes of the other common factors: relative pose and prior, marker corners.
@@ -185,6 +176,13 @@ fn assemble_portable(
             }
         }
     }
+    for (i, sum) in pose_sums.iter().enumerate() {
+        // A dense column holds every row from 0: the block's rows start at its offset.
+        for k in 0..6 {
+            let base = st.col_ptr[6 * i + k] + 6 * i;
+            add(&mut out.h[base..base + k + 1], &sum[6 * k..6 * k + k + 1]);
+        }
+    }
     cost
 }
 
@@ -231,17 +229,6 @@ fn add(sum: &mut [f64], part: &[f64]) {
     }
 }
 
-/// The blocks of `JᵀJ` and `Jᵀr` that a pose–point factor contributes, with `J = [A | B]`
-/// (`A` the pose's six columns, `B` the point's three): `AᵀA`, `AᵀB`, `BᵀB`, `Aᵀr`, `Bᵀr`,
-/// each by column.
-struct PosePointBlocks {
-    pose: [[f64; 6]; 6],
-    coupling: [[f64; 6]; 3],
-    point: [[f64; 3]; 3],
-    g_pose: [f64; 6],
-    g_point: [f64; 3],
-}
-
 /// [`PosePointBlocks`] of a column-major `M × 9` Jacobian: each row is read once into
 /// registers, and every sum runs over the `M` rows in the same order as [`gram`]'s.
 #[inline(always)]
@@ -250,13 +237,7 @@ fn pose_point_blocks<const M: usize>(jac: &[f64], r: &[f64]) -> PosePointBlocks 
     let a: [[f64; 6]; M] = std::array::from_fn(|k| std::array::from_fn(|c| jac[c * M + k]));
     let b: [[f64; 3]; M] = std::array::from_fn(|k| std::array::from_fn(|c| jac[(6 + c) * M + k]));
     let r: &[f64; M] = r.try_into().expect("M residuals");
-    let mut out = PosePointBlocks {
-        pose: [[0.0; 6]; 6],
-        coupling: [[0.0; 6]; 3],
-        point: [[0.0; 3]; 3],
-        g_pose: [0.0; 6],
-        g_point: [0.0; 3],
-    };
+    let mut out = PosePointBlocks::default();
     for ((a, b), &r) in a.iter().zip(&b).zip(r) {
         for (col, &ac) in out.pose.iter_mut().zip(a) {
             for (o, &ai) in col.iter_mut().zip(a) {
@@ -279,4 +260,63 @@ fn pose_point_blocks<const M: usize>(jac: &[f64], r: &[f64]) -> PosePointBlocks 
         }
     }
     out
+}
+
+/// Adds a pose–point factor's blocks (factor `fi`, its pose and point at scalar offsets `pose`
+/// and `point`) to their places: `g`, the pose's upper triangle in `H_rr` (or its whole block
+/// to `pose_sums` when `S` has pose blocks), the point's `V` and the coupling in `W`.
+#[inline(always)]
+fn scatter(
+    st: &Structure,
+    share: &Share,
+    (fi, pose): (usize, usize),
+    b: &PosePointBlocks,
+    point: usize,
+    out: &mut Accumulators<'_>,
+    pose_sums: &mut [[f64; 36]],
+) {
+    let Accumulators { h, g_r, g_l, v, w } = out;
+    if pose != usize::MAX {
+        add(&mut g_r[pose..pose + 6], &b.g_pose);
+        if !pose_sums.is_empty() {
+            let sum = &mut pose_sums[pose / 6];
+            for (s, x) in sum.iter_mut().zip(b.pose.as_flattened()) {
+                *s += x;
+            }
+        }
+    }
+    let p = point - st.n_reduced - 3 * share.elim.start;
+    add(&mut g_l[p..p + 3], &b.g_point);
+    let slots = if pose_sums.is_empty() {
+        &st.slots[st.slot_start[fi]..st.slot_start[fi + 1]]
+    } else {
+        &[]
+    };
+    for slot in slots {
+        // The pose's own block: the upper triangle of its 6 × 6, by column.
+        for (k, col) in b.pose.iter().enumerate() {
+            let base = st.col_ptr[slot.col0 + k] + slot.prefix;
+            add(&mut h[base..base + k + 1], &col[..k + 1]);
+        }
+    }
+    for s in &st.elim_slots[st.elim_start[fi]..st.elim_start[fi + 1]] {
+        if s.r == 1 {
+            let v = &mut v[s.target - share.elim.start];
+            for (c, col) in b.point.iter().enumerate() {
+                for (rr, x) in col.iter().enumerate() {
+                    v[(rr, c)] += x;
+                }
+            }
+        } else {
+            let at = st.couplings[s.target].data - share.data.start;
+            let w: &mut [f64; 18] = (&mut w[at..at + 18]).try_into().expect("6 × 3");
+            for (c, col) in b.coupling.iter().enumerate() {
+                if st.w_single {
+                    w[6 * c..6 * c + 6].copy_from_slice(col);
+                } else {
+                    add(&mut w[6 * c..6 * c + 6], col);
+                }
+            }
+        }
+    }
 }

@@ -20,6 +20,7 @@ mod analyse;
 mod assemble;
 mod schur;
 
+use crate::bundle::{PosePointBlocks, PoseViews};
 use crate::parallel::{run, split_lengths};
 use crate::problem::{Entry, Linearized};
 use crate::values::Values;
@@ -102,6 +103,9 @@ struct Structure {
     n: usize,
     /// `S` is laid out dense: column `c` holds rows `0..=c`.
     dense: bool,
+    /// `Some(number of poses)` when `S` is dense and every reduced variable is a pose (bundle
+    /// adjustment): the Schur update then works on 6 × 6 blocks.
+    pose_blocks: Option<usize>,
     /// Every coupling's `W` comes from exactly one factor, which stores it.
     w_single: bool,
     col_ptr: Vec<usize>,
@@ -124,6 +128,9 @@ struct Scratch {
     lin: Linearized,
     jtj: Vec<f64>,
     jtr: Vec<f64>,
+    blocks: PosePointBlocks,
+    /// Each pose's own block while assembling with pose blocks.
+    pose_sums: Vec<[f64; 36]>,
 }
 
 /// A helper thread's private sums: `H_rr` and `g_r` while assembling, `S` and the reduced
@@ -214,8 +221,9 @@ impl NormalEquations {
         &self.st.offset
     }
 
-    /// Evaluates every factor at `values`, fills `H` and `g`, and returns the cost.
-    pub fn linearize(&mut self, entries: &[Entry], values: &Values) -> f64 {
+    /// Evaluates every factor at `values` (whose pose views are `views`), fills `H` and `g`, and
+    /// returns the cost.
+    pub fn linearize(&mut self, entries: &[Entry], values: &Values, views: &PoseViews) -> f64 {
         let st = &self.st;
         self.h.fill(0.0);
         self.g.fill(0.0);
@@ -247,7 +255,7 @@ impl NormalEquations {
             })
             .collect();
         let costs = run(jobs, |(share, out, scratch)| {
-            assemble::assemble(st, share, entries, values, out, scratch)
+            assemble::assemble(st, share, entries, (values, views), out, scratch)
         });
         for p in &self.helpers {
             add(&mut self.h, &p.h);
