@@ -89,7 +89,20 @@ pub struct Frame {
     pub markers: Vec<MarkerSighting>,
     cell_width: f64,
     cell_height: f64,
-    cells: Vec<Vec<u32>>,
+    /// The grid in compressed rows: cell `c`'s keypoints (cells numbered row by row) are
+    /// `grid[cell_start[c]..cell_start[c + 1]]`, in index order. A window's cells in one grid
+    /// row are then one contiguous run, read without a pointer per cell.
+    cell_start: Vec<u32>,
+    grid: Vec<GridEntry>,
+}
+
+/// What an area query reads of a keypoint, kept with the grid.
+#[derive(Clone, Copy, Debug)]
+struct GridEntry {
+    x: f64,
+    y: f64,
+    index: u32,
+    level: u8,
 }
 
 impl Frame {
@@ -119,11 +132,36 @@ impl Frame {
     ) -> Self {
         let cell_width = f64::from(rig.width) / GRID_COLS as f64;
         let cell_height = f64::from(rig.height) / GRID_ROWS as f64;
-        let mut cells = vec![Vec::new(); GRID_COLS * GRID_ROWS];
-        for (i, k) in keypoints.iter().enumerate() {
+        let cell_of = |k: &Keypoint| {
             let c = ((k.x / cell_width) as usize).min(GRID_COLS - 1);
             let r = ((k.y / cell_height) as usize).min(GRID_ROWS - 1);
-            cells[r * GRID_COLS + c].push(i as u32);
+            r * GRID_COLS + c
+        };
+        // A counting sort by cell, stable, so each cell keeps index order.
+        let mut cell_start = vec![0u32; GRID_COLS * GRID_ROWS + 1];
+        for k in &keypoints {
+            cell_start[cell_of(k) + 1] += 1;
+        }
+        for c in 0..GRID_COLS * GRID_ROWS {
+            cell_start[c + 1] += cell_start[c];
+        }
+        let mut next = cell_start.clone();
+        let unset = GridEntry {
+            x: 0.0,
+            y: 0.0,
+            index: u32::MAX,
+            level: 0,
+        };
+        let mut grid = vec![unset; keypoints.len()];
+        for (i, k) in keypoints.iter().enumerate() {
+            let at = &mut next[cell_of(k)];
+            grid[*at as usize] = GridEntry {
+                x: k.x,
+                y: k.y,
+                index: i as u32,
+                level: k.level,
+            };
+            *at += 1;
         }
         Self {
             timestamp_ns,
@@ -132,7 +170,8 @@ impl Frame {
             markers: Vec::new(),
             cell_width,
             cell_height,
-            cells,
+            cell_start,
+            grid,
         }
     }
 
@@ -164,16 +203,15 @@ impl Frame {
             return;
         }
         for r in r0..=r1 {
-            for c in c0..=c1 {
-                for &i in &self.cells[r * GRID_COLS + c] {
-                    let k = &self.keypoints[i as usize];
-                    let level = usize::from(k.level);
-                    if level < min_level || level > max_level {
-                        continue;
-                    }
-                    if (k.x - x).abs() <= radius && (k.y - y).abs() <= radius {
-                        out.push(i as usize);
-                    }
+            let start = self.cell_start[r * GRID_COLS + c0] as usize;
+            let end = self.cell_start[r * GRID_COLS + c1 + 1] as usize;
+            for k in &self.grid[start..end] {
+                let level = usize::from(k.level);
+                if level < min_level || level > max_level {
+                    continue;
+                }
+                if (k.x - x).abs() <= radius && (k.y - y).abs() <= radius {
+                    out.push(k.index as usize);
                 }
             }
         }
