@@ -107,29 +107,8 @@ impl Reprojection {
         let s = self.chi2(&r);
         let (cost, weight) = kernel.map_or((s, 1.0), |k| k.evaluate(s));
         let w2 = self.scale * self.scale * weight.max(0.0);
-        // D's entries: u's row [a, 0, b], v's [0, c, d] and, with depth, u_r's [a, 0, e]; the
-        // depth column is zero where the depth is clamped (as `Pinhole::project_jacobian`).
-        let clamped = p.z < MIN_DEPTH;
-        let iz = 1.0 / p.z.max(MIN_DEPTH);
-        let (a, c) = (self.camera.fx * iz, self.camera.fy * iz);
-        let (b, d) = if clamped {
-            (0.0, 0.0)
-        } else {
-            (-a * p.x * iz, -c * p.y * iz)
-        };
-        // G = DᵀD (symmetric, G01 = 0) and h = Dᵀr.
-        let (mut g00, mut g02, g11, g12, mut g22) = (a * a, a * b, c * c, c * d, b * b + d * d);
-        let (mut h0, h1, mut h2) = (a * r[0], c * r[1], b * r[0] + d * r[1]);
-        if let Some(bf) = self.bf {
-            let e = if clamped { b } else { b + bf * iz * iz };
-            g00 += a * a;
-            g02 += a * e;
-            g22 += e * e;
-            h0 += a * r[2];
-            h2 += e * r[2];
-        }
-        let [g00, g02, g11, g12, g22] = [g00, g02, g11, g12, g22].map(|x| x * w2);
-        let h = [h0 * w2, h1 * w2, h2 * w2];
+        let (g, h) = gauss_newton_terms(&self.camera, self.bf, &p, &r, w2);
+        let [g00, g02, g11, g12, g22] = [g.g00, g.g02, g.g11, g.g12, g.g22];
         let rot = &view.rotation;
         let p = [p.x, p.y, p.z];
         // G·R_cw by column; the point block Rᵀ·(G·R) and the coupling Pᵀ·(G·R).
@@ -151,7 +130,77 @@ impl Reprojection {
                 out.point[i][c] = m;
             }
         }
-        // Pᵀ·G·P = [[G, −G·[p]×], [·, [p]×ᵀ·G·[p]×]]; column j of G·[p]× is n_j = G·(p × e_j).
+        out.pose = g.pose_block(&p);
+        out.g_pose = pose_gradient(&h, &p);
+        out.g_point =
+            std::array::from_fn(|i| rot[(0, i)] * h[0] + rot[(1, i)] * h[1] + rot[(2, i)] * h[2]);
+        cost
+    }
+}
+
+/// `G = w²·DᵀD` of a pinhole residual, `D = ∂(u, v[, u_r])/∂p_c`: symmetric, and `G01 = 0`
+/// because `u` and `u_r` do not depend on `y` nor `v` on `x`.
+#[derive(Clone, Copy, Debug)]
+pub(crate) struct Gram3 {
+    g00: f64,
+    g02: f64,
+    g11: f64,
+    g12: f64,
+    g22: f64,
+}
+
+/// `G = w²·DᵀD` and `h = w²·Dᵀr` for the residual `r` (its third entry 0 without depth) of a
+/// point `p_c` seen by `camera`; `bf` is `Some` for RGB-D `(u, v, u_r)`.
+#[inline(always)]
+pub(crate) fn gauss_newton_terms(
+    camera: &Pinhole,
+    bf: Option<f64>,
+    p_c: &Vector3<f64>,
+    r: &[f64; 3],
+    w2: f64,
+) -> (Gram3, [f64; 3]) {
+    // D's entries: u's row [a, 0, b], v's [0, c, d] and, with depth, u_r's [a, 0, e]; the
+    // depth column is zero where the depth is clamped (as `Pinhole::project_jacobian`).
+    let clamped = p_c.z < MIN_DEPTH;
+    let iz = 1.0 / p_c.z.max(MIN_DEPTH);
+    let (a, c) = (camera.fx * iz, camera.fy * iz);
+    let (b, d) = if clamped {
+        (0.0, 0.0)
+    } else {
+        (-a * p_c.x * iz, -c * p_c.y * iz)
+    };
+    let (mut g00, mut g02, g11, g12, mut g22) = (a * a, a * b, c * c, c * d, b * b + d * d);
+    let (mut h0, h1, mut h2) = (a * r[0], c * r[1], b * r[0] + d * r[1]);
+    if let Some(bf) = bf {
+        let e = if clamped { b } else { b + bf * iz * iz };
+        g00 += a * a;
+        g02 += a * e;
+        g22 += e * e;
+        h0 += a * r[2];
+        h2 += e * r[2];
+    }
+    let g = Gram3 {
+        g00: g00 * w2,
+        g02: g02 * w2,
+        g11: g11 * w2,
+        g12: g12 * w2,
+        g22: g22 * w2,
+    };
+    (g, [h0 * w2, h1 * w2, h2 * w2])
+}
+
+impl Gram3 {
+    /// The pose's block `Pᵀ·G·P = [[G, −G·[p]×], [·, [p]×ᵀ·G·[p]×]]` by column, `p` the point
+    /// in the camera; column j of `G·[p]×` is `n_j = G·(p × e_j)`.
+    #[inline(always)]
+    pub fn pose_block(&self, p: &[f64; 3]) -> [[f64; 6]; 6] {
+        let Self {
+            g00,
+            g02,
+            g11,
+            g12,
+            g22,
+        } = *self;
         let (px, py, pz) = (p[0], p[1], p[2]);
         let n = [
             [-g02 * py, g11 * pz - g12 * py, g12 * pz - g22 * py],
@@ -159,17 +208,21 @@ impl Reprojection {
             [g00 * py, -g11 * px, g02 * py - g12 * px],
         ];
         let g = [[g00, 0.0, g02], [0.0, g11, g12], [g02, g12, g22]];
+        let mut out = [[0.0; 6]; 6];
         for j in 0..3 {
-            let x = cross(&n[j], &p);
-            out.pose[j] = [g[j][0], g[j][1], g[j][2], -n[0][j], -n[1][j], -n[2][j]];
-            out.pose[3 + j] = [-n[j][0], -n[j][1], -n[j][2], x[0], x[1], x[2]];
+            let x = cross(&n[j], p);
+            out[j] = [g[j][0], g[j][1], g[j][2], -n[0][j], -n[1][j], -n[2][j]];
+            out[3 + j] = [-n[j][0], -n[j][1], -n[j][2], x[0], x[1], x[2]];
         }
-        let x = cross(&h, &p);
-        out.g_pose = [-h[0], -h[1], -h[2], x[0], x[1], x[2]];
-        out.g_point =
-            std::array::from_fn(|i| rot[(0, i)] * h[0] + rot[(1, i)] * h[1] + rot[(2, i)] * h[2]);
-        cost
+        out
     }
+}
+
+/// The pose's gradient `Pᵀ·h = [−h; h × p]`.
+#[inline(always)]
+pub(crate) fn pose_gradient(h: &[f64; 3], p: &[f64; 3]) -> [f64; 6] {
+    let x = cross(h, p);
+    [-h[0], -h[1], -h[2], x[0], x[1], x[2]]
 }
 
 #[inline(always)]

@@ -53,12 +53,20 @@ pub enum InformationError {
 /// repaired silently.
 #[derive(Clone, Debug, PartialEq)]
 pub struct Information {
-    sqrt: DMatrix<f64>,
-    /// True when `R` is diagonal, so whitening is a scaling.
-    diagonal: bool,
-    /// `s` when `R = s·I` (the usual pixel noise), so whitening is one multiplication that
-    /// linearisation folds into the robust weight.
-    isotropic: Option<f64>,
+    form: Form,
+}
+
+#[derive(Clone, Debug, PartialEq)]
+enum Form {
+    /// `R = s·I` (the usual pixel noise): whitening is one multiplication that linearisation
+    /// folds into the robust weight, and nothing is allocated (a local BA makes tens of
+    /// thousands).
+    Isotropic { dim: usize, scale: f64 },
+    General {
+        sqrt: DMatrix<f64>,
+        /// True when `R` is diagonal, so whitening is a scaling.
+        diagonal: bool,
+    },
 }
 
 impl Information {
@@ -83,13 +91,15 @@ impl Information {
             Some(chol) => {
                 let sqrt = chol.l().transpose();
                 let diagonal = (0..n).all(|c| (0..c).all(|r| sqrt[(r, c)] == 0.0));
-                let isotropic = (diagonal && n > 0 && (1..n).all(|i| sqrt[(i, i)] == sqrt[(0, 0)]))
-                    .then(|| sqrt[(0, 0)]);
-                Ok(Self {
-                    sqrt,
-                    diagonal,
-                    isotropic,
-                })
+                let form = if diagonal && n > 0 && (1..n).all(|i| sqrt[(i, i)] == sqrt[(0, 0)]) {
+                    Form::Isotropic {
+                        dim: n,
+                        scale: sqrt[(0, 0)],
+                    }
+                } else {
+                    Form::General { sqrt, diagonal }
+                };
+                Ok(Self { form })
             }
             None => Err(InformationError::NotPositiveDefinite(
                 omega.symmetric_eigenvalues().min(),
@@ -117,8 +127,7 @@ impl Information {
 
     /// `Ω = I / σ²` for a residual of `dim` entries.
     pub fn isotropic(dim: usize, sigma: f64) -> Result<Self, InformationError> {
-        // Built directly (one allocation, no factorisation): a local BA makes tens of thousands.
-        // The bits are those `new` gives for `I / σ²`.
+        // Built directly, no factorisation; the bits are those `new` gives for `I / σ²`.
         let omega = 1.0 / (sigma * sigma);
         if !omega.is_finite() {
             return Err(InformationError::NotFinite);
@@ -126,12 +135,18 @@ impl Information {
         if omega <= 0.0 {
             return Err(InformationError::NotPositiveDefinite(omega));
         }
-        let s = omega.sqrt();
-        Ok(Self {
-            sqrt: DMatrix::from_diagonal_element(dim, dim, s),
-            diagonal: true,
-            isotropic: (dim > 0).then_some(s),
-        })
+        let form = if dim == 0 {
+            Form::General {
+                sqrt: DMatrix::zeros(0, 0),
+                diagonal: true,
+            }
+        } else {
+            Form::Isotropic {
+                dim,
+                scale: omega.sqrt(),
+            }
+        };
+        Ok(Self { form })
     }
 
     /// `Ω = diag(1/σᵢ²)`.
@@ -142,39 +157,55 @@ impl Information {
     }
 
     pub fn dim(&self) -> usize {
-        self.sqrt.nrows()
+        match &self.form {
+            Form::Isotropic { dim, .. } => *dim,
+            Form::General { sqrt, .. } => sqrt.nrows(),
+        }
     }
 
     /// `s` when `R = s·I`.
     pub fn isotropic_scale(&self) -> Option<f64> {
-        self.isotropic
+        match self.form {
+            Form::Isotropic { scale, .. } => Some(scale),
+            Form::General { .. } => None,
+        }
     }
 
     /// Upper-triangular `R` with `Ω = RᵀR`.
-    pub fn sqrt(&self) -> &DMatrix<f64> {
-        &self.sqrt
+    pub fn sqrt(&self) -> DMatrix<f64> {
+        match &self.form {
+            Form::Isotropic { dim, scale } => DMatrix::from_diagonal_element(*dim, *dim, *scale),
+            Form::General { sqrt, .. } => sqrt.clone(),
+        }
     }
 
     /// `v ← R·v`, the whitened residual (or Jacobian column).
     #[inline]
     pub fn whiten(&self, v: &mut [f64]) {
-        let m = v.len();
-        debug_assert_eq!(m, self.dim());
-        let r = self.sqrt.as_slice(); // column-major
-        if self.diagonal {
-            for (i, x) in v.iter_mut().enumerate() {
-                *x *= r[i * m + i];
-            }
-        } else {
-            // Row i of an upper-triangular R reads only entries ≥ i, so in place is safe.
-            for i in 0..m {
-                v[i] = (i..m).map(|k| r[k * m + i] * v[k]).sum();
+        debug_assert_eq!(v.len(), self.dim());
+        match &self.form {
+            Form::Isotropic { scale, .. } => v.iter_mut().for_each(|x| *x *= scale),
+            Form::General { sqrt, diagonal } => {
+                let m = v.len();
+                let r = sqrt.as_slice(); // column-major
+                if *diagonal {
+                    for (i, x) in v.iter_mut().enumerate() {
+                        *x *= r[i * m + i];
+                    }
+                } else {
+                    // Row i of an upper-triangular R reads only entries ≥ i, so in place is
+                    // safe.
+                    for i in 0..m {
+                        v[i] = (i..m).map(|k| r[k * m + i] * v[k]).sum();
+                    }
+                }
             }
         }
     }
 
     pub fn matrix(&self) -> DMatrix<f64> {
-        self.sqrt.transpose() * &self.sqrt
+        let sqrt = self.sqrt();
+        sqrt.transpose() * &sqrt
     }
 }
 

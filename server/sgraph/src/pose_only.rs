@@ -12,10 +12,11 @@
 //! [`StereoProjectionFactor`]: crate::factors::projection::StereoProjectionFactor
 //! [`ProjectionFactor`]: crate::factors::projection::ProjectionFactor
 
+use crate::bundle::{gauss_newton_terms, pose_gradient};
 use crate::camera::{Pinhole, MIN_DEPTH};
-use crate::factors::projection::{point_in_camera_jacobian, CameraFromWorld};
+use crate::factors::projection::CameraFromWorld;
 use crate::lie::Se3;
-use nalgebra::{Matrix3, Matrix6, Vector2, Vector3, Vector6};
+use nalgebra::{Matrix6, Vector2, Vector3, Vector6};
 
 /// χ² 95 % quantiles for 2 and 3 degrees of freedom.
 pub const CHI2_2D: f64 = 5.991;
@@ -87,28 +88,6 @@ fn residual(
         }
     };
     (r, p_c)
-}
-
-/// Residual `r` and `∂r/∂δ` (6 columns) of one observation; rows beyond its dimension are zero.
-fn linearise(
-    camera: &Pinhole,
-    bf: f64,
-    view: &CameraFromWorld,
-    observation: &PoseObservation,
-) -> (Vector3<f64>, nalgebra::Matrix3x6<f64>) {
-    let (r, p_c) = residual(camera, bf, view, observation);
-    let d_uv = camera.project_jacobian(&p_c);
-    let d_point = point_in_camera_jacobian(&p_c);
-    let mut dg = Matrix3::zeros();
-    dg.fixed_view_mut::<2, 3>(0, 0).copy_from(&d_uv);
-    if let Measurement::Stereo(_) = observation.measured {
-        let z = p_c.z.max(MIN_DEPTH);
-        dg.fixed_view_mut::<1, 3>(2, 0).copy_from(&d_uv.row(0));
-        if p_c.z >= MIN_DEPTH {
-            dg[(2, 2)] += bf / (z * z);
-        }
-    }
-    (r, dg * d_point)
 }
 
 /// χ² of one observation at a pose.
@@ -217,7 +196,7 @@ fn levenberg_marquardt(
         let mut g = Vector6::<f64>::zeros();
         let view = CameraFromWorld::new(pose);
         for (o, _) in observations.iter().zip(included).filter(|(_, &i)| i) {
-            let (r, j) = linearise(camera, bf, &view, o);
+            let (r, p_c) = residual(camera, bf, &view, o);
             let s = r.norm_squared() * o.information;
             let d2 = threshold(o);
             // Huber's weight ρ'(s): 1 inside the threshold, √(d²/s) beyond.
@@ -226,8 +205,18 @@ fn levenberg_marquardt(
             } else {
                 1.0
             } * o.information;
-            h += j.transpose() * j * weight;
-            g += j.transpose() * r * weight;
+            // `JᵀJ` and `Jᵀr` from the Jacobian's structure, as bundle adjustment forms them.
+            let depth = matches!(o.measured, Measurement::Stereo(_)).then_some(bf);
+            let (gram, jtr) = gauss_newton_terms(camera, depth, &p_c, &[r.x, r.y, r.z], weight);
+            let p = [p_c.x, p_c.y, p_c.z];
+            for (c, column) in gram.pose_block(&p).iter().enumerate() {
+                for (rr, x) in column.iter().enumerate() {
+                    h[(rr, c)] += x;
+                }
+            }
+            for (gi, x) in g.iter_mut().zip(pose_gradient(&jtr, &p)) {
+                *gi += x;
+            }
         }
         let mut accepted = false;
         for _ in 0..10 {
