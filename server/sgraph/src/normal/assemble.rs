@@ -56,17 +56,15 @@ fn assemble_portable(
     share: &Share,
     entries: &[Entry],
     (values, views): (&Values, &PoseViews),
-    out: Accumulators<'_>,
+    mut out: Accumulators<'_>,
     scratch: &mut Scratch,
 ) -> f64 {
-    let mut out = out;
     let nr = st.n_reduced;
     let g_l_start = nr + 3 * share.elim.start;
     let Scratch {
         lin,
         jtj,
         jtr,
-        blocks,
         pose_sums,
     } = scratch;
     // With pose blocks, a pose's own block is summed whole here (vectorised) and its upper
@@ -82,9 +80,11 @@ fn assemble_portable(
         if let Some(fast) = &e.reprojection {
             let point = st.offset[fast.point.index()];
             if point != usize::MAX && point >= nr {
-                cost += fast.blocks(views, values, e.kernel, blocks);
+                // On the stack, so that the compiler may keep parts of it in registers.
+                let mut b = PosePointBlocks::default();
+                cost += fast.blocks(views, values, e.kernel, &mut b);
                 let pose = st.offset[fast.pose.index()];
-                scatter(st, share, (fi, pose), blocks, point, &mut out, pose_sums);
+                scatter(st, share, (fi, pose), &b, point, &mut out, pose_sums);
                 continue;
             }
         }

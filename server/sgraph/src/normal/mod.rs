@@ -20,7 +20,7 @@ mod analyse;
 mod assemble;
 mod schur;
 
-use crate::bundle::{PosePointBlocks, PoseViews};
+use crate::bundle::PoseViews;
 use crate::parallel::{run, split_lengths};
 use crate::problem::{Entry, Linearized};
 use crate::values::Values;
@@ -128,7 +128,6 @@ struct Scratch {
     lin: Linearized,
     jtj: Vec<f64>,
     jtr: Vec<f64>,
-    blocks: PosePointBlocks,
     /// Each pose's own block while assembling with pose blocks.
     pose_sums: Vec<[f64; 36]>,
 }

@@ -387,9 +387,9 @@ mod pose_blocks {
     use super::{Share, Structure};
     use std::arch::x86_64::*;
 
-    /// Entry `(row, col)` of block `(bi, bj)` (`bi ≤ bj`) in the packed upper triangle of `S`
-    /// that `visit` gets, with the block's own entry index; a diagonal block's lower half is
-    /// skipped.
+    /// Calls `visit(packed, block)` for every entry of `S`'s upper triangle: its index in the
+    /// packed columns and in the block layout, where block `(bi, bj)` (`bi ≤ bj`) starts at
+    /// `(bj·poses + bi)·36`, column-major. A diagonal block's lower half is not visited.
     fn for_each_entry(st: &Structure, poses: usize, mut visit: impl FnMut(usize, usize)) {
         for bj in 0..poses {
             for k in 0..6 {
@@ -421,6 +421,10 @@ mod pose_blocks {
         wv
     }
 
+    /// `S −= Σ Y·Wᵀ` over the share's points, `S` packed as [`super::schur_update_dense`]'s.
+    ///
+    /// # Safety
+    /// The CPU must support AVX2 and FMA.
     #[target_feature(enable = "avx2,fma")]
     pub(super) unsafe fn update(
         st: &Structure,
