@@ -18,7 +18,9 @@
 
 use crate::camera::{Pinhole, MIN_DEPTH};
 use crate::factor::{Factor, Kernel};
-use crate::factors::projection::{CameraFromWorld, ProjectionFactor, StereoProjectionFactor};
+use crate::factors::projection::{
+    pixel_residual, CameraFromWorld, ProjectionFactor, StereoProjectionFactor,
+};
 use crate::values::{Values, VarId, Variable};
 use nalgebra::{Matrix3, Vector3};
 use std::any::Any;
@@ -64,18 +66,15 @@ impl Reprojection {
         })
     }
 
-    /// The residual (the third entry 0 without depth) and the point in the camera, with the
-    /// factors' own arithmetic, so costs have the same bits on both paths.
+    /// The residual (the third entry 0 without depth) and the point in the camera, by the
+    /// factors' own function, so costs have the same bits on both paths.
     #[inline(always)]
     fn residual(&self, view: &CameraFromWorld, values: &Values) -> ([f64; 3], Vector3<f64>) {
         let p_c = view.transform(values.at::<Vector3<f64>>(self.point));
-        let uv = self.camera.project(&p_c);
-        let m = &self.measured;
-        let u_r = match self.bf {
-            Some(bf) => uv.x - bf / p_c.z.max(MIN_DEPTH) - m[2],
-            None => 0.0,
-        };
-        ([uv.x - m[0], uv.y - m[1], u_r], p_c)
+        (
+            pixel_residual(&self.camera, self.bf, &self.measured, &p_c),
+            p_c,
+        )
     }
 
     /// `s = rᵀΩr`.

@@ -13,8 +13,8 @@
 //! [`ProjectionFactor`]: crate::factors::projection::ProjectionFactor
 
 use crate::bundle::{gauss_newton_terms, pose_gradient};
-use crate::camera::{Pinhole, MIN_DEPTH};
-use crate::factors::projection::CameraFromWorld;
+use crate::camera::Pinhole;
+use crate::factors::projection::{pixel_residual, CameraFromWorld};
 use crate::lie::Se3;
 use nalgebra::{Matrix6, Vector2, Vector3, Vector6};
 
@@ -79,15 +79,12 @@ fn residual(
     observation: &PoseObservation,
 ) -> (Vector3<f64>, Vector3<f64>) {
     let p_c = view.transform(&observation.point_in_world);
-    let uv = camera.project(&p_c);
-    let r = match observation.measured {
-        Measurement::Mono(m) => Vector3::new(uv.x - m.x, uv.y - m.y, 0.0),
-        Measurement::Stereo(m) => {
-            let z = p_c.z.max(MIN_DEPTH);
-            Vector3::new(uv.x - m.x, uv.y - m.y, uv.x - bf / z - m.z)
-        }
+    let (depth, measured) = match observation.measured {
+        Measurement::Mono(m) => (None, [m.x, m.y, 0.0]),
+        Measurement::Stereo(m) => (Some(bf), [m.x, m.y, m.z]),
     };
-    (r, p_c)
+    let r = pixel_residual(camera, depth, &measured, &p_c);
+    (Vector3::from(r), p_c)
 }
 
 /// χ² of one observation at a pose.

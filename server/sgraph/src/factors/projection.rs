@@ -38,6 +38,24 @@ impl CameraFromWorld {
     }
 }
 
+/// `[u, v, u_r] − measured` for a point `p_c` in the camera, where `u_r = u − bf/z` with
+/// `bf` (RGB-D) and 0 without: the one residual of every reprojection path (the factors here,
+/// `bundle`'s fast path, pose-only tracking).
+#[inline(always)]
+pub(crate) fn pixel_residual(
+    camera: &Pinhole,
+    bf: Option<f64>,
+    measured: &[f64; 3],
+    p_c: &Vector3<f64>,
+) -> [f64; 3] {
+    let uv = camera.project(p_c);
+    let u_r = match bf {
+        Some(bf) => uv.x - bf / p_c.z.max(MIN_DEPTH) - measured[2],
+        None => 0.0,
+    };
+    [uv.x - measured[0], uv.y - measured[1], u_r]
+}
+
 /// `∂p_c/∂δ` for the camera pose: `[−I, [p_c]×]`.
 pub(crate) fn point_in_camera_jacobian(p_c: &Vector3<f64>) -> Matrix3x6<f64> {
     let mut j = Matrix3x6::zeros();
@@ -111,11 +129,14 @@ impl Factor for StereoProjectionFactor {
         let p_w = values.at::<Vector3<f64>>(self.keys[1]);
         let view = CameraFromWorld::new(t);
         let p_c = view.transform(p_w);
-        let uv = self.camera.project(&p_c);
+        let m = &self.measured;
+        residual.copy_from_slice(&pixel_residual(
+            &self.camera,
+            Some(self.bf),
+            &[m.x, m.y, m.z],
+            &p_c,
+        ));
         let z = p_c.z.max(MIN_DEPTH);
-        residual[0] = uv.x - self.measured.x;
-        residual[1] = uv.y - self.measured.y;
-        residual[2] = uv.x - self.bf / z - self.measured.z;
         if let Some(mut jac) = jacobian {
             let d_uv = self.camera.project_jacobian(&p_c);
             let mut dg = nalgebra::Matrix3::zeros();
@@ -176,9 +197,9 @@ impl Factor for ProjectionFactor {
         let p_w = values.at::<Vector3<f64>>(self.keys[1]);
         let view = CameraFromWorld::new(t);
         let p_c = view.transform(p_w);
-        let uv = self.camera.project(&p_c);
-        residual[0] = uv.x - self.measured.x;
-        residual[1] = uv.y - self.measured.y;
+        let m = &self.measured;
+        let r = pixel_residual(&self.camera, None, &[m.x, m.y, 0.0], &p_c);
+        residual.copy_from_slice(&r[..2]);
         if let Some(mut jac) = jacobian {
             let dg = self.camera.project_jacobian(&p_c);
             write_jacobian::<2>(&mut jac, &dg, &p_c, &view.rotation);
