@@ -113,6 +113,7 @@ pub struct TrackingConfig {
     pub new_map_after_s: f64,
     pub marker_landmarks: bool,
     pub background_ba: bool,
+    pub triangulate_points: bool,
 }
 
 impl Default for TrackingConfig {
@@ -127,6 +128,7 @@ impl Default for TrackingConfig {
             new_map_after_s: slam.new_map_after_s,
             marker_landmarks: slam.marker_landmarks,
             background_ba: slam.background_ba,
+            triangulate_points: slam.triangulate_points,
         }
     }
 }
@@ -142,6 +144,7 @@ impl TrackingConfig {
         config.new_map_after_s = self.new_map_after_s;
         config.marker_landmarks = self.marker_landmarks;
         config.background_ba = self.background_ba;
+        config.triangulate_points = self.triangulate_points;
         config
     }
 }

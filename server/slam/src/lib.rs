@@ -13,6 +13,7 @@ pub mod mapping;
 pub mod markers;
 pub mod matcher;
 pub mod tracking;
+pub mod triangulation;
 
 pub use frame::{Descriptor, Frame, Keypoint, Rig};
 pub use map::{Anchor, Atlas, KeyFrame, KeyFrameId, Map, MapPoint, MapPointId};

@@ -113,21 +113,10 @@ pub fn search_by_projection(
         .filter_map(|(i, b)| b.map(|(_, c)| (c, i)))
         .collect();
     if options.check_orientation {
-        let angles: Vec<(f32, f32)> = matches
-            .iter()
-            .map(|&(c, i)| {
-                (
-                    candidates[c].angle.unwrap_or(frame.keypoints[i].angle),
-                    frame.keypoints[i].angle,
-                )
-            })
-            .collect();
-        let keep = consistent_rotations(&angles);
-        matches = matches
-            .into_iter()
-            .zip(keep)
-            .filter_map(|(m, k)| k.then_some(m))
-            .collect();
+        matches = turned_alike(matches, |&(c, i)| {
+            let after = frame.keypoints[i].angle;
+            (candidates[c].angle.unwrap_or(after), after)
+        });
     }
     matches
 }
@@ -169,12 +158,14 @@ pub fn match_descriptors(
     if !check_orientation {
         return matches;
     }
-    let angles: Vec<(f32, f32)> = matches
-        .iter()
-        .map(|&(q, i)| (query[q].1, frame.keypoints[i].angle))
-        .collect();
-    let keep = consistent_rotations(&angles);
-    matches
+    turned_alike(matches, |&(q, i)| (query[q].1, frame.keypoints[i].angle))
+}
+
+/// The `pairs` whose `(angle before, angle after)` turned like the majority
+/// ([`consistent_rotations`]).
+pub(crate) fn turned_alike<T>(pairs: Vec<T>, angles: impl Fn(&T) -> (f32, f32)) -> Vec<T> {
+    let keep = consistent_rotations(&pairs.iter().map(angles).collect::<Vec<_>>());
+    pairs
         .into_iter()
         .zip(keep)
         .filter_map(|(m, k)| k.then_some(m))
@@ -205,14 +196,14 @@ fn consistent_rotations(angles: &[(f32, f32)]) -> Vec<bool> {
 }
 
 #[cfg(test)]
-mod tests {
+pub(crate) mod tests {
     use super::*;
     use crate::frame::Keypoint;
 
     use crate::frame::tests::rig;
 
     /// Descriptor `i`: distinct pseudo-random bits.
-    fn descriptor(i: u64) -> Descriptor {
+    pub(crate) fn descriptor(i: u64) -> Descriptor {
         let mut out = [0u8; 32];
         let mut s = i.wrapping_mul(0x9E37_79B9_7F4A_7C15) | 1;
         for b in out.iter_mut() {

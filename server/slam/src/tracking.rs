@@ -21,6 +21,7 @@ use crate::map::{Anchor, Atlas, KeyFrameId, Map, MapPointId};
 use crate::mapping::{self, LocalBaJob, SolvedLocalBa};
 use crate::markers::{self, MarkerSighting};
 use crate::matcher::{self, Projected, SearchOptions, TH_HIGH};
+use crate::triangulation;
 use nalgebra::{Matrix3, Vector2, Vector3};
 use std::collections::{HashMap, HashSet};
 use std::sync::mpsc;
@@ -60,6 +61,9 @@ pub struct TrackerConfig {
     /// Solve each keyframe's local BA on a thread of its own while tracking goes on; its result
     /// is applied before the next keyframe is inserted, so poses do not depend on timing.
     pub background_ba: bool,
+    /// Match a new keyframe's unexplained keypoints (far ones, ones without depth) in its
+    /// covisible keyframes and triangulate them into map points.
+    pub triangulate_points: bool,
 }
 
 impl Default for TrackerConfig {
@@ -78,6 +82,7 @@ impl Default for TrackerConfig {
             // Off until it is as accurate: 7-Scenes 0.026 m with it (inline 0.028 m), but seq06
             // 0.050 m (inline 0.038 m); ARCHITECTURE.md, "Tracking".
             background_ba: false,
+            triangulate_points: true,
         }
     }
 }
@@ -995,6 +1000,12 @@ impl Tracker {
             let (k, created) =
                 mapping::insert_keyframe(self.map_mut(), rig, frame.clone(), pose, &tracked.points);
             self.recent_points.extend(created);
+            if self.config.triangulate_points {
+                let (created, report) =
+                    triangulation::create_points_with_neighbours(self.map_mut(), rig, k);
+                tracing::trace!(keyframe = k.0, ?report, "points triangulated");
+                self.recent_points.extend(created);
+            }
             let added = markers::add_sightings(self.map_mut(), k);
             if !added.is_empty() {
                 tracing::debug!(?added, keyframe = k.0, "markers mapped");

@@ -142,10 +142,7 @@ impl OrbExtractor {
         let (mut cascade, mut next) = (Mat::default(), Mat::default());
         let size = grey.size()?;
         for (level, &scale) in self.scales.iter().enumerate() {
-            let level_size = Size::new(
-                (f64::from(size.width) / scale).round() as i32,
-                (f64::from(size.height) / scale).round() as i32,
-            );
+            let level_size = level_size(size, scale);
             let level_image = if level == 0 {
                 grey
             } else {
@@ -186,9 +183,17 @@ impl OrbExtractor {
                 let Some(descriptor) = smoothed.describe(corner.x, corner.y, angle) else {
                     continue;
                 };
+                // The level's size is rounded to whole pixels, so its true scale differs from
+                // `scale` by up to 0.25 % per axis (1.5 px at the far edge on level 7).
                 let (x, y) = (
-                    level_to_base(corner.x, scale),
-                    level_to_base(corner.y, scale),
+                    level_to_base(
+                        corner.x,
+                        f64::from(size.width) / f64::from(level_size.width),
+                    ),
+                    level_to_base(
+                        corner.y,
+                        f64::from(size.height) / f64::from(level_size.height),
+                    ),
                 );
                 let depth_m = depth.and_then(|(image, _)| {
                     image
@@ -293,6 +298,14 @@ impl OrbExtractor {
         let angle = (m01 as f64).atan2(m10 as f64).to_degrees();
         Ok((if angle < 0.0 { angle + 360.0 } else { angle }) as f32)
     }
+}
+
+/// A pyramid level's image size: the image's divided by `scale`, rounded to whole pixels.
+fn level_size(size: Size, scale: f64) -> Size {
+    Size::new(
+        (f64::from(size.width) / scale).round() as i32,
+        (f64::from(size.height) / scale).round() as i32,
+    )
 }
 
 /// A level's pixel coordinate in level-0 pixels. Pixel centres sit at integers and a resize
@@ -458,6 +471,55 @@ mod tests {
         // Within the cluster, each kept corner is the strongest of its region: never the
         // weakest corner of the cluster.
         assert!(!kept.iter().any(|c| c.response == 100.0));
+    }
+
+    #[test]
+    fn coarse_level_pixels_map_back_where_the_resize_took_them() {
+        // A ramp whose value is its x (or y) coordinate, shrunk as each level is: a level pixel
+        // holds the level-0 coordinate it was sampled at, which is where its keypoints belong.
+        let extractor = OrbExtractor::new(OrbParams::default()).unwrap();
+        let size = Size::new(640, 480);
+        for axis in 0..2 {
+            let mut ramp = Mat::new_rows_cols_with_default(
+                size.height,
+                size.width,
+                opencv::core::CV_32FC1,
+                0.into(),
+            )
+            .unwrap();
+            for y in 0..size.height {
+                for x in 0..size.width {
+                    *ramp.at_2d_mut::<f32>(y, x).unwrap() = [x, y][axis] as f32;
+                }
+            }
+            for &scale in &extractor.scales[1..] {
+                let shrunk_size = level_size(size, scale);
+                let mut shrunk = Mat::default();
+                imgproc::resize(
+                    &ramp,
+                    &mut shrunk,
+                    shrunk_size,
+                    0.0,
+                    0.0,
+                    imgproc::INTER_LINEAR,
+                )
+                .unwrap();
+                let true_scale = [
+                    f64::from(size.width) / f64::from(shrunk_size.width),
+                    f64::from(size.height) / f64::from(shrunk_size.height),
+                ][axis];
+                // Interior pixels only: the resize clamps at the border.
+                let (w, h) = (shrunk_size.width, shrunk_size.height);
+                for (x, y) in [(2, 2), (w / 2, h / 2), (w - 3, h - 3)] {
+                    let sampled = f64::from(*shrunk.at_2d::<f32>(y, x).unwrap());
+                    let mapped = f64::from(level_to_base([x, y][axis], true_scale));
+                    assert!(
+                        (sampled - mapped).abs() < 0.01,
+                        "scale {scale}, axis {axis}, pixel ({x}, {y}): sampled at {sampled}, mapped to {mapped}"
+                    );
+                }
+            }
+        }
     }
 
     #[test]
