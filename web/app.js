@@ -129,6 +129,7 @@ function drawMap(view, robot) {
   ctx.stroke();
   ctx.fillStyle = "#2f6fde";
   for (const k of view.keyframes) {
+    if (k.culled) continue; // still on the path above, no longer in the map
     const [x, , z] = k.world_from_camera.translation_m;
     ctx.fillRect(u(x) - 1.5, v(z) - 1.5, 3, 3);
   }

@@ -172,6 +172,10 @@ pub struct MapKeyframe {
     pub id: u32,
     pub timestamp_ns: u64,
     pub world_from_camera: Pose,
+    /// Culled as redundant: listed (frames anchored to it follow it) at the pose it now has
+    /// relative to the keyframe that replaced it, but no longer part of the map.
+    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+    pub culled: bool,
 }
 
 /// A marker landmark of a map.

@@ -207,10 +207,29 @@ fn descriptors_are_opencvs_at_every_level() {
     for image in &images {
         let extraction = ours.extract(image, None).unwrap();
         let mut keypoints = Vector::<KeyPoint>::new();
+        let (width, height) = (f64::from(image.cols()), f64::from(image.rows()));
         for f in &extraction.features {
+            let nominal = 1.2f64.powi(f.octave);
+            // OpenCV finds a keypoint's level pixel as its coordinates over the nominal scale;
+            // ours map level pixels back with the level's true (rounded-size) scale. Hand
+            // OpenCV the same level pixel in its convention.
+            let to_opencv = |x: f32, extent: f64| {
+                let level_extent = (extent / nominal).round();
+                let level_pixel = ((f64::from(x) + 0.5) * level_extent / extent - 0.5).round();
+                (level_pixel * nominal) as f32
+            };
             let size = 31.0 * 1.2f32.powi(f.octave);
             keypoints.push(
-                KeyPoint::new_coords(f.x, f.y, size, f.angle, f.response, f.octave, -1).unwrap(),
+                KeyPoint::new_coords(
+                    to_opencv(f.x, width),
+                    to_opencv(f.y, height),
+                    size,
+                    f.angle,
+                    f.response,
+                    f.octave,
+                    -1,
+                )
+                .unwrap(),
             );
         }
         let mut theirs = Mat::default();

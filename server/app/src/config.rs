@@ -108,12 +108,14 @@ pub struct TrackingConfig {
     pub enabled: bool,
     pub features: usize,
     pub virtual_baseline_m: f64,
+    pub close_depth_baselines: f64,
     pub keyframe_ratio: f64,
     pub local_ba_iterations: usize,
     pub new_map_after_s: f64,
     pub marker_landmarks: bool,
     pub background_ba: bool,
     pub triangulate_points: bool,
+    pub cull_keyframes: bool,
 }
 
 impl Default for TrackingConfig {
@@ -123,12 +125,14 @@ impl Default for TrackingConfig {
             enabled: true,
             features: slam.orb.features,
             virtual_baseline_m: slam.virtual_baseline_m,
+            close_depth_baselines: slam.close_depth_baselines,
             keyframe_ratio: slam.keyframe_ratio,
             local_ba_iterations: slam.local_ba_iterations,
             new_map_after_s: slam.new_map_after_s,
             marker_landmarks: slam.marker_landmarks,
             background_ba: slam.background_ba,
             triangulate_points: slam.triangulate_points,
+            cull_keyframes: slam.cull_keyframes,
         }
     }
 }
@@ -139,12 +143,14 @@ impl TrackingConfig {
         let mut config = vsgraphs_slam::TrackerConfig::default();
         config.orb.features = self.features;
         config.virtual_baseline_m = self.virtual_baseline_m;
+        config.close_depth_baselines = self.close_depth_baselines;
         config.keyframe_ratio = self.keyframe_ratio;
         config.local_ba_iterations = self.local_ba_iterations;
         config.new_map_after_s = self.new_map_after_s;
         config.marker_landmarks = self.marker_landmarks;
         config.background_ba = self.background_ba;
         config.triangulate_points = self.triangulate_points;
+        config.cull_keyframes = self.cull_keyframes;
         config
     }
 }
@@ -220,6 +226,12 @@ impl Config {
                 "must be a positive length in metres".into(),
             );
         }
+        if !(t.close_depth_baselines.is_finite() && t.close_depth_baselines > 0.0) {
+            return invalid(
+                "tracking.close_depth_baselines",
+                "must be a positive number of baselines".into(),
+            );
+        }
         if !(t.keyframe_ratio > 0.0 && t.keyframe_ratio < 1.0) {
             return invalid(
                 "tracking.keyframe_ratio",
@@ -271,6 +283,11 @@ mod tests {
             .unwrap_err()
             .to_string()
             .contains("tracking.keyframe_ratio"));
+        std::fs::write(&path, "[tracking]\nclose_depth_baselines = 0.0\n").unwrap();
+        assert!(Config::load(&path)
+            .unwrap_err()
+            .to_string()
+            .contains("tracking.close_depth_baselines"));
         std::fs::write(&path, "[http]\nlisten = \"127.0.0.1:9000\"\n").unwrap();
         assert_eq!(Config::load(&path).unwrap().http.listen.port(), 9000);
         assert!(matches!(

@@ -32,7 +32,7 @@ pub fn map_view(map: &Map, index: usize, updated_ns: u64) -> MapView {
     MapView {
         map: index as u32,
         updated_ns,
-        keyframe_count: map.keyframes.len() as u64,
+        keyframe_count: map.live_keyframes() as u64,
         point_count,
         marker_count: map.markers.len() as u64,
         keyframes: map
@@ -41,7 +41,8 @@ pub fn map_view(map: &Map, index: usize, updated_ns: u64) -> MapView {
             .map(|k| MapKeyframe {
                 id: k.id.0,
                 timestamp_ns: k.frame.timestamp_ns,
-                world_from_camera: api_pose(&k.world_from_camera),
+                world_from_camera: api_pose(&map.world_from_keyframe(k.id)),
+                culled: k.is_culled(),
             })
             .collect(),
         points: decimate(&live, SNAPSHOT_POINTS),

@@ -365,7 +365,7 @@ fn track(
             state,
             result,
             maps: tracker.atlas().maps.len(),
-            keyframes: map.map_or(0, |m| m.keyframes.len()),
+            keyframes: map.map_or(0, |m| m.live_keyframes()),
             map_points: map.map_or(0, |m| m.live_points()),
             markers: map.map_or(0, |m| m.markers.len()),
             error,

@@ -21,11 +21,20 @@ pub struct KeyFrame {
     pub frame: Frame,
     pub world_from_camera: Se3,
     pub points: Vec<Option<MapPointId>>,
+    /// Set when the keyframe was culled as redundant: the keyframe it now hangs from and its
+    /// pose relative to that one (`parent_from_this`). A culled keyframe sees no points, so
+    /// covisibility and everything built on it pass it by; frames anchored to it follow
+    /// its parent ([`Map::world_from_keyframe`]).
+    pub parent: Option<(KeyFrameId, Se3)>,
 }
 
 impl KeyFrame {
     pub fn camera_centre(&self) -> Vector3<f64> {
         self.world_from_camera.translation
+    }
+
+    pub fn is_culled(&self) -> bool {
+        self.parent.is_some()
     }
 }
 
@@ -107,6 +116,52 @@ impl Map {
         self.points.iter().filter(|p| !p.bad).count()
     }
 
+    /// Keyframes not culled.
+    pub fn live_keyframes(&self) -> usize {
+        self.keyframes.iter().filter(|k| !k.is_culled()).count()
+    }
+
+    /// A keyframe's pose now: its own, or for a culled one its parent's (followed up the
+    /// chain of culled parents) composed with its pose relative to the parent.
+    pub fn world_from_keyframe(&self, id: KeyFrameId) -> Se3 {
+        let mut k = self.keyframe(id);
+        let mut parent_from_keyframe = Se3::identity();
+        while let Some((parent, parent_from_this)) = &k.parent {
+            parent_from_keyframe = parent_from_this.compose(&parent_from_keyframe);
+            k = self.keyframe(*parent);
+        }
+        k.world_from_camera.compose(&parent_from_keyframe)
+    }
+
+    /// Culls a redundant keyframe: it forgets its points (a point it alone saw is culled) and
+    /// hangs from its most covisible keyframe. Returns that parent, or `None` (and leaves the
+    /// keyframe alone) when it shares no point with another keyframe.
+    pub fn cull_keyframe(&mut self, id: KeyFrameId) -> Option<KeyFrameId> {
+        if self.keyframe(id).is_culled() {
+            return None;
+        }
+        let covisible = self.covisible(id);
+        let parent = covisible.first()?.0;
+        for p in self.points_of(id) {
+            self.erase_observation(p, id);
+        }
+        let parent_from_this = self
+            .keyframe(parent)
+            .world_from_camera
+            .inverse()
+            .compose(&self.keyframe(id).world_from_camera);
+        self.keyframe_mut(id).parent = Some((parent, parent_from_this));
+        if let Some(n) = self.neighbours.get_mut(id.0 as usize) {
+            n.clear();
+        }
+        for (k, _) in covisible {
+            if (k.0 as usize) < self.neighbours.len() {
+                self.neighbours[k.0 as usize] = self.covisible(k);
+            }
+        }
+        Some(parent)
+    }
+
     pub fn add_keyframe(&mut self, frame: Frame, world_from_camera: Se3) -> KeyFrameId {
         let id = KeyFrameId(self.keyframes.len() as u32);
         let n = frame.len();
@@ -115,6 +170,7 @@ impl Map {
             frame,
             world_from_camera,
             points: vec![None; n],
+            parent: None,
         });
         id
     }

@@ -1,6 +1,7 @@
 //! Local mapping: a new keyframe joins the map with its matched points and new points from its
-//! depth, young points that are rarely found are culled, and a local bundle adjustment refines
-//! the keyframes around it and the points they see.
+//! depth (and [`crate::triangulation`]'s from its neighbours), young points that are rarely
+//! found are culled, a local bundle adjustment refines the keyframes around it and the points
+//! they see, and keyframes that others make redundant are culled.
 //!
 //! Runs synchronously after tracking decides on a keyframe (so results are deterministic and
 //! the live and offline paths agree); its cost is measured per keyframe.
@@ -232,6 +233,68 @@ pub fn cull_recent_points(
         }
     });
     culled
+}
+
+/// A keyframe is redundant when this share of its close points is seen by enough others.
+const REDUNDANT_SHARE: f64 = 0.9;
+/// Other keyframes that must see a point, at the same scale or finer, for it to be redundant.
+const REDUNDANT_OBSERVERS: usize = 3;
+
+/// Culls the keyframes around `current` (its covisible ones) that add little: at least
+/// [`REDUNDANT_SHARE`] of their points with close depth are also seen by
+/// [`REDUNDANT_OBSERVERS`] other keyframes at the same pyramid level or finer (ORB-SLAM's
+/// rule for RGB-D). `current`, the map's first keyframe and keyframes that saw a marker (their
+/// sightings are the markers' observations) are kept, and so is `keep`. Fewer, better spread
+/// keyframes let the local window reach further back. Returns the keyframes culled.
+pub fn cull_redundant_keyframes(
+    map: &mut Map,
+    rig: &Rig,
+    current: KeyFrameId,
+    keep: Option<KeyFrameId>,
+) -> Vec<KeyFrameId> {
+    let with_markers: HashSet<KeyFrameId> = map
+        .markers
+        .values()
+        .flat_map(|m| m.observations.iter().map(|&(k, _)| k))
+        .collect();
+    let mut culled = Vec::new();
+    for (k, _) in map.covisible(current) {
+        if k.0 == 0 || Some(k) == keep || with_markers.contains(&k) {
+            continue;
+        }
+        if is_redundant(map, rig, k) && map.cull_keyframe(k).is_some() {
+            culled.push(k);
+        }
+    }
+    culled
+}
+
+fn is_redundant(map: &Map, rig: &Rig, k: KeyFrameId) -> bool {
+    let kf = map.keyframe(k);
+    let (mut close, mut redundant) = (0usize, 0usize);
+    for (keypoint, p) in kf.frame.keypoints.iter().zip(&kf.points) {
+        let Some(p) = p else { continue };
+        let point = map.point(*p);
+        if point.bad || keypoint.depth.is_none_or(|z| z > rig.close_depth) {
+            continue;
+        }
+        close += 1;
+        if point.observations.len() <= REDUNDANT_OBSERVERS {
+            continue;
+        }
+        let observers = point
+            .observations
+            .iter()
+            .filter(|&&(other, i)| {
+                other != k && map.keyframe(other).frame.keypoints[i].level <= keypoint.level + 1
+            })
+            .take(REDUNDANT_OBSERVERS)
+            .count();
+        if observers >= REDUNDANT_OBSERVERS {
+            redundant += 1;
+        }
+    }
+    close > 0 && redundant as f64 > REDUNDANT_SHARE * close as f64
 }
 
 /// What a local bundle adjustment did.
@@ -564,4 +627,145 @@ pub fn apply_local_ba(
         initial_cost: report.initial_cost,
         final_cost: report.final_cost,
     })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::frame::tests::rig;
+    use crate::triangulation::tests::{frame_of, Depth};
+    use nalgebra::UnitQuaternion;
+
+    /// Six keyframes 5 cm apart seeing the same 150 close points; keyframe 1 also sees five
+    /// points of its own, keyframe 3 fifty. Returns the map and the keyframes' poses.
+    fn six_views() -> (Map, Vec<Se3>) {
+        let rig = rig();
+        let shared: Vec<(Vector3<f64>, u64, Depth)> = (0..150)
+            .map(|i| {
+                let f = i as f64;
+                let p = Vector3::new(
+                    (f * 0.37).sin() * 0.4,
+                    (f * 0.73).cos() * 0.5,
+                    1.5 + (i % 7) as f64 * 0.2,
+                );
+                (p, i as u64, Depth::Measured)
+            })
+            .collect();
+        let own = |k: u64, n: u64| -> Vec<(Vector3<f64>, u64, Depth)> {
+            (0..n)
+                .map(|i| {
+                    let f = i as f64;
+                    let p = Vector3::new(
+                        0.05 * k as f64 + (f * 0.91).sin() * 0.3,
+                        (f * 0.51).cos() * 0.4,
+                        2.0,
+                    );
+                    (p, 1000 * (k + 1) + i, Depth::Measured)
+                })
+                .collect()
+        };
+        let mut map = Map::default();
+        let mut poses = Vec::new();
+        let mut ids: HashMap<u64, MapPointId> = HashMap::new();
+        for k in 0..6u64 {
+            let pose = Se3::new(
+                UnitQuaternion::identity(),
+                Vector3::new(0.05 * k as f64, 0.0, 0.0),
+            );
+            let mut seen = shared.clone();
+            seen.extend(own(k, [0, 5, 0, 50, 0, 0][k as usize]));
+            let (frame, index) = frame_of(&rig, &pose, &seen);
+            let keyframe = map.add_keyframe(frame, pose);
+            for (i, &j) in index.iter().enumerate() {
+                let (position, id, _) = seen[j];
+                match ids.get(&id) {
+                    Some(&p) => map.add_observation(p, keyframe, i),
+                    None => {
+                        ids.insert(id, map.add_point(position, keyframe, i, &rig));
+                    }
+                }
+            }
+            poses.push(pose);
+        }
+        for k in 0..6 {
+            map.refresh_neighbours(KeyFrameId(k));
+        }
+        (map, poses)
+    }
+
+    #[test]
+    fn keyframes_whose_points_others_see_are_culled_and_hang_from_a_neighbour() {
+        let rig = rig();
+        let (mut map, poses) = six_views();
+        let only_by_1: Vec<MapPointId> = map
+            .points_of(KeyFrameId(1))
+            .into_iter()
+            .filter(|&p| map.point(p).observations.len() == 1)
+            .collect();
+        assert_eq!(only_by_1.len(), 5);
+        let culled = cull_redundant_keyframes(&mut map, &rig, KeyFrameId(4), Some(KeyFrameId(5)));
+        // 0 is the first, 4 the current, 5 kept; 3 has too many points of its own.
+        assert_eq!(culled, vec![KeyFrameId(1), KeyFrameId(2)]);
+        assert_eq!(map.live_keyframes(), 4);
+        for k in [1, 2] {
+            let kf = map.keyframe(KeyFrameId(k));
+            assert!(kf.is_culled() && kf.points.iter().all(Option::is_none));
+            assert!(map
+                .points
+                .iter()
+                .all(|p| p.observations.iter().all(|o| o.0 != kf.id)));
+            assert!(map
+                .covisible(KeyFrameId(0))
+                .iter()
+                .all(|&(o, _)| o != kf.id));
+            assert!(map
+                .neighbours(KeyFrameId(0))
+                .iter()
+                .all(|&(o, _)| o != kf.id));
+        }
+        assert!(
+            only_by_1.iter().all(|&p| map.point(p).bad),
+            "its own points go with it"
+        );
+        // A culled keyframe keeps its pose, and follows its parent when that moves.
+        for k in [1, 2] {
+            let error = map
+                .world_from_keyframe(KeyFrameId(k))
+                .local(&poses[k as usize]);
+            assert!(error.norm() < 1e-12);
+        }
+        let moved = Se3::new(
+            UnitQuaternion::from_euler_angles(0.0, 0.1, 0.0),
+            Vector3::new(0.0, 0.2, 0.0),
+        );
+        for k in map.keyframes.iter_mut().filter(|k| !k.is_culled()) {
+            k.world_from_camera = moved.compose(&k.world_from_camera);
+        }
+        for k in [1, 2] {
+            let expected = moved.compose(&poses[k as usize]);
+            let error = map.world_from_keyframe(KeyFrameId(k)).local(&expected);
+            assert!(error.norm() < 1e-12);
+        }
+        // Nothing else is redundant now.
+        assert!(
+            cull_redundant_keyframes(&mut map, &rig, KeyFrameId(4), Some(KeyFrameId(5))).is_empty()
+        );
+    }
+
+    #[test]
+    fn keyframes_that_saw_a_marker_are_kept() {
+        let rig = rig();
+        let (mut map, _) = six_views();
+        map.markers.insert(
+            7,
+            crate::markers::MapMarker {
+                id: 7,
+                side_m: 0.2,
+                world_from_marker: Se3::identity(),
+                observations: vec![(KeyFrameId(1), 0)],
+            },
+        );
+        let culled = cull_redundant_keyframes(&mut map, &rig, KeyFrameId(4), Some(KeyFrameId(5)));
+        assert_eq!(culled, vec![KeyFrameId(2)]);
+    }
 }

@@ -64,14 +64,19 @@ pub struct TrackerConfig {
     /// Match a new keyframe's unexplained keypoints (far ones, ones without depth) in its
     /// covisible keyframes and triangulate them into map points.
     pub triangulate_points: bool,
+    /// Cull keyframes whose close points other keyframes see as well (ORB-SLAM's rule).
+    pub cull_keyframes: bool,
 }
 
 impl Default for TrackerConfig {
     fn default() -> Self {
         Self {
             orb: OrbParams::default(),
-            virtual_baseline_m: 0.08,
-            close_depth_baselines: 40.0,
+            // ORB-SLAM's TUM setting is 0.08 m and 40 baselines. A right-image coordinate is
+            // weighted as a pixel, so the baseline sets how much depth is trusted; good depth
+            // deserves more (ARCHITECTURE.md, "Tracking"). Close depth stays 3.2 m.
+            virtual_baseline_m: 0.32,
+            close_depth_baselines: 10.0,
             min_initial_points: 300,
             min_inliers: 30,
             keyframe_ratio: 0.5,
@@ -83,6 +88,9 @@ impl Default for TrackerConfig {
             // 0.050 m (inline 0.038 m); ARCHITECTURE.md, "Tracking".
             background_ba: false,
             triangulate_points: true,
+            // Off: seq06 seeds 1–3 0.054 / 0.036 / 0.064 m with it, 0.040 / 0.055 / 0.026 m
+            // without; 7-Scenes 0.0307 m against 0.0291 m (ARCHITECTURE.md, "Tracking").
+            cull_keyframes: false,
         }
     }
 }
@@ -898,11 +906,18 @@ impl Tracker {
                 return Some(tracked);
             }
         }
-        let tries = self.config.relocalisation_candidates.min(keyframes);
-        for _ in 0..tries {
-            // Newest first, then backwards through the map.
+        let mut tries = self.config.relocalisation_candidates.min(keyframes);
+        for _ in 0..keyframes {
+            if tries == 0 {
+                break;
+            }
+            // Newest first, then backwards through the map, passing culled keyframes by.
             let k = KeyFrameId((keyframes - 1 - self.relocalisation_cursor % keyframes) as u32);
             self.relocalisation_cursor += 1;
+            if self.map().keyframe(k).is_culled() {
+                continue;
+            }
+            tries -= 1;
             let Some(matched) = self.relocalise_against(frame, rig, k) else {
                 continue;
             };
@@ -997,6 +1012,17 @@ impl Tracker {
                 Some(correction) => correction.compose(&tracked.world_from_camera),
                 None => tracked.world_from_camera,
             };
+            // The previous keyframe's BA has landed: its neighbours' redundancy is as settled
+            // as it gets (ORB-SLAM culls right after local BA; here that is the same point in
+            // both BA modes). The newest keyframe and the reference stay.
+            if let (true, Some(reference)) = (self.config.cull_keyframes, self.reference) {
+                let newest = self.map().keyframes.last().map(|k| k.id);
+                let culled =
+                    mapping::cull_redundant_keyframes(self.map_mut(), rig, reference, newest);
+                if !culled.is_empty() {
+                    tracing::trace!(?culled, "redundant keyframes culled");
+                }
+            }
             let (k, created) =
                 mapping::insert_keyframe(self.map_mut(), rig, frame.clone(), pose, &tracked.points);
             self.recent_points.extend(created);

@@ -288,7 +288,7 @@ fn midpoint(
 }
 
 #[cfg(test)]
-mod tests {
+pub(crate) mod tests {
     use super::*;
     use crate::frame::tests::rig;
     use crate::frame::{Frame, Keypoint};
@@ -297,13 +297,14 @@ mod tests {
 
     /// How a point is seen in a view.
     #[derive(Clone, Copy)]
-    enum Depth {
+    pub(crate) enum Depth {
         Measured,
         Missing,
     }
 
-    /// A keyframe seeing `points` (world positions, descriptor ids, depth or not) at `pose`.
-    fn frame_of(
+    /// A keyframe seeing `points` (world positions, descriptor ids, depth or not) at `pose`;
+    /// also the index into `points` of each of its keypoints.
+    pub(crate) fn frame_of(
         rig: &Rig,
         world_from_camera: &Se3,
         points: &[(Vector3<f64>, u64, Depth)],
