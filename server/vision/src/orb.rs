@@ -26,6 +26,11 @@ pub struct OrbParams {
     /// FAST thresholds: tried first in every cell, then where a cell found nothing.
     pub fast_threshold: i32,
     pub fast_min_threshold: i32,
+    /// σ, in pixels of the image, of the Gaussian that smooths the image before it is shrunk
+    /// to the levels at least twice smaller, where corners are searched (0: none). Bilinear
+    /// shrinking reads only the 2 × 2 pixels around each sample, so without it those levels
+    /// alias and their corners jitter as the view moves (BENCHMARKS.md, session 14).
+    pub coarse_smoothing_sigma: f64,
 }
 
 impl Default for OrbParams {
@@ -36,10 +41,14 @@ impl Default for OrbParams {
             levels: 8,
             fast_threshold: 20,
             fast_min_threshold: 7,
+            coarse_smoothing_sigma: 1.0,
         }
     }
 }
 
+/// Levels shrunk by at least this factor are searched on the smoothed image
+/// ([`OrbParams::coarse_smoothing_sigma`]).
+const COARSE_SCALE: f64 = 2.0;
 /// Half the side of the square patch an orientation is computed on, pixels.
 const HALF_PATCH: i32 = 15;
 /// Corners closer than this to a level's border are not searched (room for the patch).
@@ -141,13 +150,33 @@ impl OrbExtractor {
         let mut resized = Mat::default();
         let (mut cascade, mut next) = (Mat::default(), Mat::default());
         let size = grey.size()?;
+        let sigma = self.params.coarse_smoothing_sigma;
+        let mut smoothed_image = Mat::default();
+        let smooth = sigma > 0.0 && self.scales.iter().any(|&s| s >= COARSE_SCALE);
+        if smooth {
+            imgproc::gaussian_blur(
+                grey,
+                &mut smoothed_image,
+                Size::new(0, 0),
+                sigma,
+                sigma,
+                opencv::core::BORDER_REFLECT_101,
+            )?;
+        }
         for (level, &scale) in self.scales.iter().enumerate() {
             let level_size = level_size(size, scale);
             let level_image = if level == 0 {
                 grey
             } else {
+                // The Gaussian is centred on each pixel, so a level's pixels map back to the
+                // image as they do without it.
+                let source = if smooth && scale >= COARSE_SCALE {
+                    &smoothed_image
+                } else {
+                    grey
+                };
                 imgproc::resize(
-                    grey,
+                    source,
                     &mut resized,
                     level_size,
                     0.0,
