@@ -111,6 +111,7 @@ pub struct TrackingConfig {
     pub close_depth_baselines: f64,
     pub keyframe_ratio: f64,
     pub local_ba_iterations: usize,
+    pub local_ba_threads: usize,
     pub new_map_after_s: f64,
     pub marker_landmarks: bool,
     pub background_ba: bool,
@@ -128,6 +129,7 @@ impl Default for TrackingConfig {
             close_depth_baselines: slam.close_depth_baselines,
             keyframe_ratio: slam.keyframe_ratio,
             local_ba_iterations: slam.local_ba_iterations,
+            local_ba_threads: slam.local_ba_threads,
             new_map_after_s: slam.new_map_after_s,
             marker_landmarks: slam.marker_landmarks,
             background_ba: slam.background_ba,
@@ -146,6 +148,7 @@ impl TrackingConfig {
         config.close_depth_baselines = self.close_depth_baselines;
         config.keyframe_ratio = self.keyframe_ratio;
         config.local_ba_iterations = self.local_ba_iterations;
+        config.local_ba_threads = self.local_ba_threads;
         config.new_map_after_s = self.new_map_after_s;
         config.marker_landmarks = self.marker_landmarks;
         config.background_ba = self.background_ba;
@@ -220,6 +223,12 @@ impl Config {
                 format!("{} is not within 50..=10000", t.features),
             );
         }
+        if !(1..=64).contains(&t.local_ba_threads) {
+            return invalid(
+                "tracking.local_ba_threads",
+                format!("{} is not within 1..=64", t.local_ba_threads),
+            );
+        }
         if !(t.virtual_baseline_m.is_finite() && t.virtual_baseline_m > 0.0) {
             return invalid(
                 "tracking.virtual_baseline_m",
@@ -288,6 +297,11 @@ mod tests {
             .unwrap_err()
             .to_string()
             .contains("tracking.close_depth_baselines"));
+        std::fs::write(&path, "[tracking]\nlocal_ba_threads = 0\n").unwrap();
+        assert!(Config::load(&path)
+            .unwrap_err()
+            .to_string()
+            .contains("tracking.local_ba_threads"));
         std::fs::write(&path, "[http]\nlisten = \"127.0.0.1:9000\"\n").unwrap();
         assert_eq!(Config::load(&path).unwrap().http.listen.port(), 9000);
         assert!(matches!(

@@ -54,6 +54,16 @@ pub fn median(values: &[f64]) -> f64 {
     }
 }
 
+/// The `q`-quantile (0..=1) of `values` by the nearest rank; 0 when there are none.
+pub fn quantile(values: &[f64], q: f64) -> f64 {
+    let mut v = values.to_vec();
+    v.sort_by(f64::total_cmp);
+    match v.len() {
+        0 => 0.0,
+        n => v[((q.clamp(0.0, 1.0) * n as f64).ceil() as usize).clamp(1, n) - 1],
+    }
+}
+
 /// One frame as a robot would send it, with its source's stamp.
 pub struct OfflineFrame {
     pub timestamp_ns: u64,
@@ -262,4 +272,20 @@ pub fn tum_text(poses: &[TrajectoryPose]) -> String {
 /// Writes the poses of one map as a TUM file.
 pub fn write_tum(path: &Path, poses: &[TrajectoryPose]) -> std::io::Result<()> {
     std::fs::write(path, tum_text(poses))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn quantiles_are_nearest_ranks() {
+        let ten: Vec<f64> = (1..=10).rev().map(f64::from).collect();
+        assert_eq!(quantile(&ten, 0.9), 9.0);
+        assert_eq!(quantile(&ten, 0.91), 10.0);
+        assert_eq!(quantile(&ten, 1.0), 10.0);
+        assert_eq!(quantile(&ten, 0.0), 1.0);
+        assert_eq!(quantile(&[], 0.5), 0.0);
+        assert_eq!(median(&ten), 5.5);
+    }
 }

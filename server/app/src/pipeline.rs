@@ -8,7 +8,7 @@ use std::time::{Duration, Instant};
 use vsgraphs_proto::api::{DistanceSource, MarkerDetection, MarkerPose};
 use vsgraphs_proto::api::{MapView, TrackingState};
 use vsgraphs_proto::{keys, Message, RgbdFrame};
-use vsgraphs_slam::{FrameResult, MarkerSighting, Tracker};
+use vsgraphs_slam::{ExtractedFrame, FrameResult, MarkerSighting, Tracker};
 use vsgraphs_vision::aruco::MarkerDetector;
 use vsgraphs_vision::camera::PinholeCamera;
 use vsgraphs_vision::decode::{self, DecodeError};
@@ -264,55 +264,38 @@ impl FrameProcessor {
         // Decoding: the protobuf, the colour image and the depth image.
         let decode = started.elapsed();
 
-        let detection_started = Instant::now();
-        let detections = self
-            .detector
-            .detect(&grey)
-            .map_err(|e| reject(Reason::Detection, e.to_string(), sequence))?;
-        if self
-            .estimator
-            .as_ref()
-            .is_none_or(|e| e.camera() != &camera)
-        {
-            self.estimator = Some(
-                PoseEstimator::new(camera.clone(), self.settings.side_m)
-                    .map_err(|e| reject(Reason::BadCamera, e.to_string(), sequence))?,
-            );
-        }
-        let estimator = self.estimator.as_ref().expect("set above");
-        let depth_check = self
-            .settings
-            .depth_refinement
-            .then_some((&depth, self.settings.depth_agreement));
-        let mut markers = Vec::with_capacity(detections.len());
-        let mut sightings = Vec::with_capacity(detections.len());
-        for detection in detections {
-            // A pose that cannot be computed leaves the detection without one.
-            let estimate = estimator.estimate(&detection, depth_check).ok();
-            sightings.push(MarkerSighting::from_detection(
-                &detection,
-                self.settings.side_m,
-                estimate.as_ref(),
-            ));
-            markers.push(MarkerDetection {
-                id: detection.id,
-                corners_px: detection.corners,
-                pose: estimate.as_ref().map(api_pose),
+        // Markers are detected on a second thread while this one extracts the frame's
+        // features: both only read the image, and together they are most of a frame's work.
+        let Self {
+            detector,
+            settings,
+            estimator,
+            tracker,
+            ..
+        } = self;
+        let (markers, extracted) = std::thread::scope(|scope| {
+            let markers = scope.spawn(|| {
+                let started = Instant::now();
+                let found = detect_markers(detector, estimator, settings, &camera, &grey, &depth);
+                (found, started.elapsed())
             });
-        }
-        let detection = detection_started.elapsed();
-        let tracking = self.tracker.as_mut().map(|tracker| {
+            let extracted = tracker
+                .as_mut()
+                .map(|t| extract(t, &camera, frame.timestamp_ns, &grey, &depth));
+            let markers = markers
+                .join()
+                .unwrap_or_else(|panic| std::panic::resume_unwind(panic));
+            (markers, extracted)
+        });
+        let ((markers, sightings), detection) = match markers {
+            (Ok(found), elapsed) => (found, elapsed),
+            (Err((reason, e)), _) => return Err(reject(reason, e, sequence)),
+        };
+        let tracking = tracker.as_mut().zip(extracted).map(|(tracker, extracted)| {
             if previous.is_some_and(|p| p.session_id != frame.session_id) {
                 tracker.restart();
             }
-            track(
-                tracker,
-                &camera,
-                frame.timestamp_ns,
-                &grey,
-                &depth,
-                sightings,
-            )
+            track(tracker, frame.timestamp_ns, extracted, sightings)
         });
         Ok(Processed {
             session_id: frame.session_id,
@@ -344,14 +327,75 @@ impl From<vsgraphs_vision::CvError> for SetupError {
     }
 }
 
-/// Tracks one decoded frame. Lens distortion is refused: keypoints are not undistorted yet, and
-/// tracking a distorted image as if it were rectified would give wrong poses, not no pose.
-fn track(
+/// Detects the frame's markers and estimates their poses; the estimator is set up again when
+/// the camera changes. A pose that cannot be computed leaves its detection without one.
+fn detect_markers(
+    detector: &mut MarkerDetector,
+    estimator: &mut Option<PoseEstimator>,
+    settings: &MarkerConfig,
+    camera: &PinholeCamera,
+    grey: &vsgraphs_vision::opencv::core::Mat,
+    depth: &vsgraphs_vision::depth::DepthImage,
+) -> Result<(Vec<MarkerDetection>, Vec<MarkerSighting>), (Reason, String)> {
+    let detections = detector
+        .detect(grey)
+        .map_err(|e| (Reason::Detection, e.to_string()))?;
+    if estimator.as_ref().is_none_or(|e| e.camera() != camera) {
+        let made = PoseEstimator::new(camera.clone(), settings.side_m);
+        *estimator = Some(made.map_err(|e| (Reason::BadCamera, e.to_string()))?);
+    }
+    let estimator = estimator.as_ref().expect("set above");
+    let depth_check = settings
+        .depth_refinement
+        .then_some((depth, settings.depth_agreement));
+    let mut markers = Vec::with_capacity(detections.len());
+    let mut sightings = Vec::with_capacity(detections.len());
+    for detection in detections {
+        let estimate = estimator.estimate(&detection, depth_check).ok();
+        sightings.push(MarkerSighting::from_detection(
+            &detection,
+            settings.side_m,
+            estimate.as_ref(),
+        ));
+        markers.push(MarkerDetection {
+            id: detection.id,
+            corners_px: detection.corners,
+            pose: estimate.as_ref().map(api_pose),
+        });
+    }
+    Ok((markers, sightings))
+}
+
+/// Tracking's part of a frame before its markers are known. Lens distortion is refused:
+/// keypoints are not undistorted yet, and tracking a distorted image as if it were rectified
+/// would give wrong poses, not no pose.
+// One per frame, on the stack for a moment: boxing the large variant would buy nothing.
+#[allow(clippy::large_enum_variant)]
+enum Extracted {
+    Features(Result<ExtractedFrame, vsgraphs_slam::TrackError>),
+    UnsupportedCamera,
+}
+
+/// Extracts the frame's features for tracking (see [`Extracted`]).
+fn extract(
     tracker: &mut Tracker,
     camera: &PinholeCamera,
     timestamp_ns: u64,
     grey: &vsgraphs_vision::opencv::core::Mat,
     depth: &vsgraphs_vision::depth::DepthImage,
+) -> Extracted {
+    if !camera.is_undistorted() {
+        return Extracted::UnsupportedCamera;
+    }
+    let pinhole = vsgraphs_slam::Pinhole::new(camera.fx, camera.fy, camera.cx, camera.cy);
+    Extracted::Features(tracker.extract(timestamp_ns, &pinhole, grey, depth))
+}
+
+/// Tracks one decoded frame whose features are extracted.
+fn track(
+    tracker: &mut Tracker,
+    timestamp_ns: u64,
+    extracted: Extracted,
     sightings: Vec<MarkerSighting>,
 ) -> FrameTracking {
     let summary = |tracker: &Tracker, state, result: Option<FrameResult>, error| {
@@ -372,12 +416,15 @@ fn track(
             map_view,
         }
     };
-    if !camera.is_undistorted() {
-        return summary(tracker, TrackingState::UnsupportedCamera, None, None);
-    }
-    let pinhole = vsgraphs_slam::Pinhole::new(camera.fx, camera.fy, camera.cx, camera.cy);
+    let extracted = match extracted {
+        Extracted::Features(extracted) => extracted,
+        Extracted::UnsupportedCamera => {
+            return summary(tracker, TrackingState::UnsupportedCamera, None, None)
+        }
+    };
     // On an error the frame has no pose (it counts as untracked); the state is the tracker's.
-    let (result, error) = match tracker.track(timestamp_ns, &pinhole, grey, depth, sightings) {
+    let tracked = extracted.and_then(|extracted| tracker.track_extracted(extracted, sightings));
+    let (result, error) = match tracked {
         Ok(result) => (Some(result), None),
         Err(e) => (None, Some(e.to_string())),
     };
@@ -388,7 +435,6 @@ fn track(
     };
     summary(tracker, state, result, error)
 }
-
 fn decode_rejection(error: DecodeError, fallback: Reason, sequence: Option<u64>) -> Rejection {
     let reason = match error {
         DecodeError::UnknownColourEncoding(_)

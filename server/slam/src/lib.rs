@@ -18,5 +18,7 @@ pub mod triangulation;
 pub use frame::{Descriptor, Frame, Keypoint, Rig};
 pub use map::{Anchor, Atlas, KeyFrame, KeyFrameId, Map, MapPoint, MapPointId};
 pub use markers::{MapMarker, MarkerSighting};
-pub use tracking::{FrameResult, StageTimes, TrackError, Tracker, TrackerConfig, TrackingState};
+pub use tracking::{
+    ExtractedFrame, FrameResult, StageTimes, TrackError, Tracker, TrackerConfig, TrackingState,
+};
 pub use vsgraphs_sgraph::{Pinhole, Se3};

@@ -52,6 +52,9 @@ pub struct TrackerConfig {
     pub keyframe_ratio: f64,
     /// Iterations of local bundle adjustment per keyframe (0: none).
     pub local_ba_iterations: usize,
+    /// Threads of each local bundle adjustment. A fixed number rather than one per core, so
+    /// that a sequence gives the same map on every machine.
+    pub local_ba_threads: usize,
     /// Lost this long without relocalising: a new map starts, seconds.
     pub new_map_after_s: f64,
     /// Keyframes tried for relocalisation per frame (the most recent first, then round-robin).
@@ -81,6 +84,9 @@ impl Default for TrackerConfig {
             min_inliers: 30,
             keyframe_ratio: 0.5,
             local_ba_iterations: 10,
+            // Inline, the second core is idle while the BA runs (markers are detected beside
+            // feature extraction, not beside mapping): two threads take a third off its time.
+            local_ba_threads: 2,
             new_map_after_s: 3.0,
             relocalisation_candidates: 4,
             marker_landmarks: true,
@@ -126,6 +132,14 @@ pub struct StageTimes {
     /// Solve time of the local BA applied during this frame (on the BA thread when
     /// `background_ba`).
     pub local_ba: Duration,
+}
+
+/// A frame's features, from [`Tracker::extract`], waiting for its markers.
+#[derive(Debug)]
+pub struct ExtractedFrame {
+    frame: Frame,
+    rig: Rig,
+    features_time: Duration,
 }
 
 /// What happened to one frame.
@@ -357,7 +371,8 @@ impl Tracker {
     }
 
     /// Tracks one frame: an 8-bit grey image and its registered depth, with the camera's
-    /// rectified intrinsics and the ArUco markers detected in it.
+    /// rectified intrinsics and the ArUco markers detected in it. The same as
+    /// [`Tracker::extract`] then [`Tracker::track_extracted`].
     pub fn track(
         &mut self,
         timestamp_ns: u64,
@@ -366,8 +381,43 @@ impl Tracker {
         depth: &DepthImage,
         sightings: Vec<MarkerSighting>,
     ) -> Result<FrameResult, TrackError> {
+        let extracted = self.extract(timestamp_ns, camera, grey, depth)?;
+        self.track_extracted(extracted, sightings)
+    }
+
+    /// The first step of [`Tracker::track`]: the frame's features. It reads no map and changes
+    /// nothing, so a caller may detect the frame's markers on another thread meanwhile.
+    pub fn extract(
+        &mut self,
+        timestamp_ns: u64,
+        camera: &Pinhole,
+        grey: &Mat,
+        depth: &DepthImage,
+    ) -> Result<ExtractedFrame, TrackError> {
         let started = Instant::now();
         let rig = self.rig_for(camera, depth.width, depth.height);
+        let extraction = self.extractor.extract(grey, Some((depth, rig.bf)))?;
+        Ok(ExtractedFrame {
+            frame: Frame::new(timestamp_ns, &extraction, &rig),
+            rig,
+            features_time: started.elapsed(),
+        })
+    }
+
+    /// The rest of [`Tracker::track`]: tracks a frame from [`Tracker::extract`] with the markers
+    /// detected in it.
+    pub fn track_extracted(
+        &mut self,
+        extracted: ExtractedFrame,
+        sightings: Vec<MarkerSighting>,
+    ) -> Result<FrameResult, TrackError> {
+        let started = Instant::now();
+        let ExtractedFrame {
+            mut frame,
+            rig,
+            features_time,
+        } = extracted;
+        let timestamp_ns = frame.timestamp_ns;
         let mut event = None;
         if self.rig.as_ref().is_some_and(|r| r != &rig) {
             // Another camera: poses in the old map mean nothing for it.
@@ -375,8 +425,6 @@ impl Tracker {
             event = Some("camera changed: a new map starts".to_owned());
         }
         self.rig = Some(rig.clone());
-        let extraction = self.extractor.extract(grey, Some((depth, rig.bf)))?;
-        let mut frame = Frame::new(timestamp_ns, &extraction, &rig);
         if self.config.marker_landmarks {
             frame.markers = sightings;
             // A marker the map lacks is mapped only once two frames in a row saw its id: one
@@ -392,7 +440,7 @@ impl Tracker {
             }
         }
         let mut times = StageTimes {
-            features: started.elapsed(),
+            features: features_time + started.elapsed(),
             ..StageTimes::default()
         };
         let mut result = FrameResult {
@@ -1043,7 +1091,8 @@ impl Tracker {
             self.map_mut().refresh_neighbours(k);
             if self.config.local_ba_iterations > 0 {
                 let iterations = self.config.local_ba_iterations;
-                let job = mapping::prepare_local_ba(self.map(), rig, k, iterations);
+                let job = mapping::prepare_local_ba(self.map(), rig, k, iterations)
+                    .with_threads(self.config.local_ba_threads);
                 self.start_local_ba(job, k, rig)?;
                 world_from_camera = self.map().keyframe(k).world_from_camera;
             }
