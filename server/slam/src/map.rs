@@ -82,6 +82,9 @@ pub struct Map {
     pub markers: BTreeMap<i32, MapMarker>,
     /// Each keyframe's covisible keyframes as of its last refresh (see [`Map::neighbours`]).
     neighbours: Vec<Vec<(KeyFrameId, usize)>>,
+    /// Points marked bad, counted as they are: the API reads the live count on every frame,
+    /// and a long run's map holds tens of thousands.
+    culled_points: usize,
 }
 
 impl Map {
@@ -113,7 +116,16 @@ impl Map {
 
     /// Points not culled.
     pub fn live_points(&self) -> usize {
-        self.points.iter().filter(|p| !p.bad).count()
+        self.points.len() - self.culled_points
+    }
+
+    /// Marks a point bad, once.
+    fn mark_bad(&mut self, point: MapPointId) {
+        let p = &mut self.points[point.0 as usize];
+        if !p.bad {
+            p.bad = true;
+            self.culled_points += 1;
+        }
     }
 
     /// Keyframes not culled.
@@ -232,7 +244,7 @@ impl Map {
                 *slot = None;
             }
         }
-        self.points[point.0 as usize].bad = true;
+        self.mark_bad(point);
     }
 
     /// Drops the observation of `point` by `keyframe`; a point left with none is culled.
@@ -264,7 +276,7 @@ impl Map {
         let p = &mut self.points[kept.0 as usize];
         p.visible += visible;
         p.found += found;
-        self.points[gone.0 as usize].bad = true;
+        self.mark_bad(gone);
     }
 
     /// Recomputes a point's viewing direction, distance range and distinctive descriptor from
@@ -448,10 +460,20 @@ mod tests {
         assert_eq!(map.keyframe(b).points[0], None);
         assert_eq!(map.covisible(a), vec![(b, 2), (c, 1)]);
         assert_eq!(map.live_points(), 4);
+        map.cull_point(points[0]);
+        assert_eq!(map.live_points(), 4, "a point is culled once");
         // Erasing the last observation culls.
         map.erase_observation(points[4], c);
         map.erase_observation(points[4], a);
         assert!(map.point(points[4]).bad);
+        assert_eq!(map.live_points(), 3);
+        // Merging culls the merged point; a culled one is not merged again.
+        map.replace_point(points[3], points[2]);
+        map.replace_point(points[3], points[1]);
+        assert!(map.point(points[3]).bad);
+        assert_eq!(map.live_points(), 2);
+        let counted = map.points.iter().filter(|p| !p.bad).count();
+        assert_eq!(map.live_points(), counted);
     }
 
     #[test]
