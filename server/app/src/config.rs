@@ -86,6 +86,9 @@ pub struct MarkerConfig {
     pub corner_refinement: CornerRefinement,
     pub depth_refinement: bool,
     pub depth_agreement: f64,
+    /// Detect markers on a second thread while the worker extracts the frame's features
+    /// (false: one after the other on the worker, for one-core robots and one-core timing).
+    pub beside_features: bool,
 }
 
 impl Default for MarkerConfig {
@@ -97,6 +100,7 @@ impl Default for MarkerConfig {
             corner_refinement: CornerRefinement::Subpixel,
             depth_refinement: true,
             depth_agreement: 0.15,
+            beside_features: true,
         }
     }
 }

@@ -171,6 +171,18 @@ fn print_offline(s: &vsgraphs_server::offline::OfflineSummary) {
         s.mapping_ms.iter().sum::<f64>() / s.mapping_ms.len().max(1) as f64,
         s.local_ba_ms.iter().sum::<f64>() / s.local_ba_ms.len().max(1) as f64
     );
+    // The tracking thread's own work per frame, the figure ORB-SLAM reports as tracking time.
+    let front_end: Vec<f64> = s
+        .features_ms
+        .iter()
+        .zip(&s.tracking_ms)
+        .map(|(f, t)| f + t)
+        .collect();
+    println!(
+        "features + tracking ms per frame: median {:.2}, 90th percentile {:.2}",
+        median(&front_end),
+        quantile(&front_end, 0.9)
+    );
     // What a live stream must absorb: at 30 Hz a frame has 33.3 ms on average, and the
     // ingest queue takes up the slower ones.
     println!(

@@ -265,7 +265,8 @@ impl FrameProcessor {
         let decode = started.elapsed();
 
         // Markers are detected on a second thread while this one extracts the frame's
-        // features: both only read the image, and together they are most of a frame's work.
+        // features (unless `beside_features` is off): both only read the image, and together
+        // they are most of a frame's work.
         let Self {
             detector,
             settings,
@@ -273,20 +274,30 @@ impl FrameProcessor {
             tracker,
             ..
         } = self;
-        let (markers, extracted) = std::thread::scope(|scope| {
-            let markers = scope.spawn(|| {
-                let started = Instant::now();
-                let found = detect_markers(detector, estimator, settings, &camera, &grey, &depth);
-                (found, started.elapsed())
-            });
-            let extracted = tracker
+        let beside_features = settings.beside_features;
+        let mut detect = || {
+            let started = Instant::now();
+            let found = detect_markers(detector, estimator, settings, &camera, &grey, &depth);
+            (found, started.elapsed())
+        };
+        let mut extract_features = || {
+            tracker
                 .as_mut()
-                .map(|t| extract(t, &camera, frame.timestamp_ns, &grey, &depth));
-            let markers = markers
-                .join()
-                .unwrap_or_else(|panic| std::panic::resume_unwind(panic));
-            (markers, extracted)
-        });
+                .map(|t| extract(t, &camera, frame.timestamp_ns, &grey, &depth))
+        };
+        let (markers, extracted) = if beside_features {
+            std::thread::scope(|scope| {
+                let markers = scope.spawn(detect);
+                let extracted = extract_features();
+                let markers = markers
+                    .join()
+                    .unwrap_or_else(|panic| std::panic::resume_unwind(panic));
+                (markers, extracted)
+            })
+        } else {
+            let extracted = extract_features();
+            (detect(), extracted)
+        };
         let ((markers, sightings), detection) = match markers {
             (Ok(found), elapsed) => (found, elapsed),
             (Err((reason, e)), _) => return Err(reject(reason, e, sequence)),
