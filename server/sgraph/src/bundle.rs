@@ -14,7 +14,9 @@
 //!
 //! and `Pᵀ·x = [−x; x × p_c]`. That is about half the arithmetic of forming the 3 × 9 Jacobian
 //! and its products, and no factor is called through a `dyn` pointer. A test checks the blocks
-//! against the factors' own Jacobians.
+//! against the factors' own Jacobians. The normal equations evaluate most of these factors
+//! four at a time with the same formulas (`normal::observations`); this one-at-a-time form
+//! serves the rest, and pose-only optimisation shares its Gauss–Newton terms.
 
 use crate::camera::{Pinhole, MIN_DEPTH};
 use crate::factor::{Factor, Kernel};
@@ -75,6 +77,25 @@ impl Reprojection {
             pixel_residual(&self.camera, self.bf, &self.measured, &p_c),
             p_c,
         )
+    }
+
+    /// Measured `(u, v, u_r)`; the third is 0 without depth.
+    pub fn measured(&self) -> [f64; 3] {
+        self.measured
+    }
+
+    /// `s` of the information `s·I`.
+    pub fn scale(&self) -> f64 {
+        self.scale
+    }
+
+    /// `Some(bf)` for RGB-D, `None` for monocular.
+    pub fn bf(&self) -> Option<f64> {
+        self.bf
+    }
+
+    pub fn camera(&self) -> &Pinhole {
+        &self.camera
     }
 
     /// `s = rᵀΩr`.
@@ -275,7 +296,7 @@ impl PoseViews {
     }
 
     #[inline(always)]
-    fn get(&self, pose: VarId) -> &CameraFromWorld {
+    pub fn get(&self, pose: VarId) -> &CameraFromWorld {
         &self.0[pose.index()]
     }
 }

@@ -9,6 +9,7 @@ mod bundle;
 pub mod camera;
 pub mod factor;
 pub mod factors;
+mod four;
 pub mod g2o;
 pub mod lie;
 mod normal;

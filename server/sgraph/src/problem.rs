@@ -151,12 +151,7 @@ impl Problem {
 
     /// Total cost `Σ ρ(rᵀΩr)` (g2o's "chi2" when no kernel is set).
     pub fn cost(&self) -> f64 {
-        cost_of(
-            &self.entries,
-            &self.values,
-            &self.pose_views(&self.values),
-            1,
-        )
+        self.factor_costs().iter().sum()
     }
 
     /// The pose views that passes over this problem's factors need at `values`.
@@ -175,25 +170,7 @@ impl Problem {
     }
 }
 
-/// Total cost, summed over `workers` equal runs of factors on as many threads; `views` are
-/// those of `values`.
-pub(crate) fn cost_of(
-    entries: &[Entry],
-    values: &Values,
-    views: &PoseViews,
-    workers: usize,
-) -> f64 {
-    let chunk = entries.len().div_ceil(workers.max(1)).max(1);
-    let parts = crate::parallel::run(entries.chunks(chunk).collect(), |part| {
-        let mut r = Vec::new();
-        part.iter()
-            .map(|e| entry_cost(e, values, views, &mut r))
-            .sum::<f64>()
-    });
-    parts.iter().sum()
-}
-
-fn entry_cost(e: &Entry, values: &Values, views: &PoseViews, r: &mut Vec<f64>) -> f64 {
+pub(crate) fn entry_cost(e: &Entry, values: &Values, views: &PoseViews, r: &mut Vec<f64>) -> f64 {
     if let Some(fast) = &e.reprojection {
         return fast.cost(views, values, e.kernel);
     }

@@ -4,7 +4,7 @@
 //! matrix that will not factor) the problem holds the last good values.
 
 use crate::normal::{Damping, LinearError, NormalEquations};
-use crate::problem::{cost_of, Problem};
+use crate::problem::Problem;
 use crate::values::Values;
 use std::time::{Duration, Instant};
 use thiserror::Error;
@@ -156,7 +156,7 @@ impl Solver {
         // Pose views go with their values: a candidate's serve its cost and, once accepted,
         // the next linearisation.
         let mut views = problem.pose_views(&problem.values);
-        let initial_cost = cost_of(entries, &problem.values, &views, workers);
+        let initial_cost = system.cost(entries, &problem.values, &views);
         if !initial_cost.is_finite() {
             return Err(SolveError::NonFiniteInitialCost(initial_cost));
         }
@@ -241,7 +241,7 @@ impl Solver {
                     it.step_norm = step_norm;
                     apply_step(&problem.values, system.offsets(), &delta, &mut candidate);
                     candidate_views.update(&candidate, need_views);
-                    let new_cost = cost_of(entries, &candidate, &candidate_views, workers);
+                    let new_cost = system.cost(entries, &candidate, &candidate_views);
                     it.tried_cost = new_cost;
                     let predicted = system.predicted_decrease(damping, &delta);
                     let actual = cost - new_cost;

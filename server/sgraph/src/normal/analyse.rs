@@ -2,6 +2,7 @@
 //! of `S`, where each factor's blocks land, how the work is shared among threads, and the
 //! symbolic Cholesky factorisation.
 
+use super::observations::{Observations, Observed};
 use super::{
     Coupling, ElimSlot, LinearError, NormalEquations, Private, SchurPair, Scratch, Share, Slot,
     Structure, DENSE_LIMIT, PARALLEL_MIN_FACTORS,
@@ -26,6 +27,17 @@ impl NormalEquations {
         problem: &Problem,
         eliminate: bool,
         threads: usize,
+    ) -> Result<Self, LinearError> {
+        Self::analyse_with(problem, eliminate, threads, true)
+    }
+
+    /// [`Self::analyse`], with reprojections assembled four at a time (`four_lanes`) or one at
+    /// a time (to compare both).
+    pub(super) fn analyse_with(
+        problem: &Problem,
+        eliminate: bool,
+        threads: usize,
+        four_lanes: bool,
     ) -> Result<Self, LinearError> {
         let values = &problem.values;
         let entries = &problem.entries;
@@ -195,14 +207,35 @@ impl NormalEquations {
             let found = couplings[range.clone()].binary_search_by_key(&off, |c| c.offset);
             range.start + found.expect("every neighbour has a coupling")
         };
-        // Per factor: its reduced slots and its eliminated slots.
+        // Reprojections of eliminated points with a kernel the four-lane path knows go there,
+        // with their point and coupling; the other factors get their reduced and eliminated
+        // slots.
+        let mut observed = vec![Observed::NONE; entries.len()];
         let mut slot_start = Vec::with_capacity(entries.len() + 1);
         let mut slots = Vec::new();
         let mut elim_start = Vec::with_capacity(entries.len() + 1);
         let mut elim_slots = Vec::new();
-        for e in entries {
+        let mut writers = vec![0u32; couplings.len()];
+        for (e, observed) in entries.iter().zip(&mut observed) {
             slot_start.push(slots.len());
             elim_start.push(elim_slots.len());
+            let fast = e
+                .reprojection
+                .as_ref()
+                .filter(|f| four_lanes && elim[f.point.index()] && Observations::accepts(e.kernel));
+            if let Some(fast) = fast {
+                let point = elim_index[fast.point.index()];
+                let coupling = is_reduced(fast.pose).then(|| {
+                    let c = coupling_of(point, offset[fast.pose.index()]);
+                    writers[c] += 1;
+                    c as u32
+                });
+                *observed = Observed {
+                    elim: point as u32,
+                    coupling: coupling.unwrap_or(Observed::NONE.coupling),
+                };
+                continue;
+            }
             let keys = e.factor.keys();
             for (ia, &a) in keys.iter().enumerate() {
                 for (ib, &b) in keys.iter().enumerate() {
@@ -221,10 +254,12 @@ impl NormalEquations {
                             target: elim_index[a.index()],
                         });
                     } else if elim[a.index()] && is_reduced(b) {
+                        let target = coupling_of(elim_index[a.index()], ob);
+                        writers[target] += 1;
                         elim_slots.push(ElimSlot {
                             l: ia as u8,
                             r: ib as u8,
-                            target: coupling_of(elim_index[a.index()], ob),
+                            target,
                         });
                     }
                 }
@@ -234,10 +269,6 @@ impl NormalEquations {
         elim_start.push(elim_slots.len());
         // Whether each coupling gets exactly one factor (as a reprojection in bundle
         // adjustment): assembly then stores `W` instead of adding to a zeroed copy.
-        let mut writers = vec![0u32; couplings.len()];
-        for s in elim_slots.iter().filter(|s| s.l != s.r) {
-            writers[s.target] += 1;
-        }
         let w_single = writers.iter().all(|&c| c == 1);
         let elim_of: Vec<Option<usize>> = elim_of
             .iter()
@@ -248,7 +279,7 @@ impl NormalEquations {
         } else {
             1
         };
-        let shares = share_out(
+        let mut shares = share_out(
             &elim_of,
             &coupling_start,
             &couplings,
@@ -256,6 +287,22 @@ impl NormalEquations {
             w_len,
             workers,
         );
+        // Where a pose's own block starts in each of its six columns.
+        let diagonal =
+            |pose: usize| std::array::from_fn(|k| col_ptr[pose + k] + prefix_of(pose, pose));
+        for share in &mut shares {
+            let mut mine = Vec::new();
+            share.factors.retain(|&fi| {
+                let o = observed[fi as usize];
+                if o.elim == Observed::NONE.elim {
+                    return true;
+                }
+                mine.push((fi, o));
+                false
+            });
+            share.observations =
+                Observations::new(share, &mine, entries, &couplings, (&offset, &diagonal));
+        }
         let symbolic = {
             let pattern = SymbolicSparseColMatRef::new_checked(
                 n_reduced, n_reduced, &col_ptr, None, &row_idx,
@@ -318,7 +365,7 @@ impl NormalEquations {
             v: vec![Matrix3::zeros(); num_elim],
             v_inv: vec![Matrix3::zeros(); num_elim],
             w: vec![0.0; w_len],
-            y: vec![0.0; w_len],
+            y: Vec::new(),
             l_values: vec![0.0; symbolic.len_val()],
             symbolic,
             memory,
@@ -362,6 +409,7 @@ fn share_out(
         .windows(2)
         .map(|b| Share {
             factors: Vec::new(),
+            observations: Observations::default(),
             elim: b[0]..b[1],
             data: data_at(b[0])..data_at(b[1]),
             pairs: pair_start[b[0]]..pair_start[b[1]],

@@ -66,17 +66,20 @@ fn assemble_portable(
         jtj,
         jtr,
         pose_sums,
+        pose_parts,
     } = scratch;
     // With pose blocks, a pose's own block is summed whole here (vectorised) and its upper
     // triangle added to `H` once at the end.
     pose_sums.clear();
     pose_sums.resize(st.pose_blocks.unwrap_or(0), [0.0; 36]);
-    let mut cost = 0.0;
+    let mut cost = share
+        .observations
+        .assemble((values, views), &mut out, st.w_single, pose_parts);
     for &fi in &share.factors {
         let fi = fi as usize;
         let e = &entries[fi];
-        // A reprojection onto an eliminated point (the bulk of bundle adjustment): its blocks
-        // straight from `bundle`, written to their places.
+        // A reprojection onto an eliminated point that the four-lane path does not take (a
+        // kernel other than Huber): its blocks straight from `bundle`, written to their places.
         if let Some(fast) = &e.reprojection {
             let point = st.offset[fast.point.index()];
             if point != usize::MAX && point >= nr {

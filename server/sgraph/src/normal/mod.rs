@@ -18,11 +18,12 @@
 
 mod analyse;
 mod assemble;
+mod observations;
 mod schur;
 
 use crate::bundle::PoseViews;
 use crate::parallel::{run, split_lengths};
-use crate::problem::{Entry, Linearized};
+use crate::problem::{entry_cost, Entry, Linearized};
 use crate::values::Values;
 use faer::dyn_stack::{MemBuffer, MemStack};
 use faer::linalg::cholesky::llt::factor::{LltParams, LltRegularization};
@@ -88,7 +89,10 @@ struct SchurPair {
 /// those variables' couplings, entries of `w`/`y`, and Schur pairs.
 #[derive(Clone, Debug, Default)]
 struct Share {
+    /// Factors assembled one by one.
     factors: Vec<u32>,
+    /// Reprojections assembled four at a time.
+    observations: observations::Observations,
     elim: Range<usize>,
     data: Range<usize>,
     pairs: Range<usize>,
@@ -130,6 +134,8 @@ struct Scratch {
     jtr: Vec<f64>,
     /// Each pose's own block while assembling with pose blocks.
     pose_sums: Vec<[f64; 36]>,
+    /// What observations add to each pose's own block.
+    pose_parts: Vec<observations::PoseParts>,
 }
 
 /// A helper thread's private sums: `H_rr` and `g_r` while assembling, `S` and the reduced
@@ -175,8 +181,9 @@ pub(crate) struct NormalEquations {
     /// `H_ll` of each eliminated variable, and its damped inverse.
     v: Vec<Matrix3<f64>>,
     v_inv: Vec<Matrix3<f64>>,
-    /// `H_rl` blocks, and `H_rl·H_ll⁻¹` in the same layout.
+    /// `H_rl` blocks.
     w: Vec<f64>,
+    /// `H_rl·H_ll⁻¹` in `w`'s layout; empty where it is not stored ([`schur::stores_y`]).
     y: Vec<f64>,
     symbolic: SymbolicCholesky<usize>,
     l_values: Vec<f64>,
@@ -263,6 +270,21 @@ impl NormalEquations {
         costs.iter().sum()
     }
 
+    /// `Σ ρ(rᵀΩr)` of every factor at `values` (whose pose views are `views`), share by share
+    /// as assembly sums it.
+    pub fn cost(&self, entries: &[Entry], values: &Values, views: &PoseViews) -> f64 {
+        let costs = run(self.st.shares.iter().collect(), |share| {
+            let mut r = Vec::new();
+            let others: f64 = share
+                .factors
+                .iter()
+                .map(|&fi| entry_cost(&entries[fi as usize], values, views, &mut r))
+                .sum();
+            share.observations.cost(values, views) + others
+        });
+        costs.iter().sum()
+    }
+
     /// Largest absolute entry of the gradient.
     pub fn gradient_max(&self) -> f64 {
         self.g.iter().fold(0.0, |m, v| m.max(v.abs()))
@@ -286,7 +308,13 @@ impl NormalEquations {
                 p.rhs.fill(0.0);
             }
             let v_inv = split_lengths(&mut self.v_inv, st.shares.iter().map(|s| s.elim.len()));
-            let y = split_lengths(&mut self.y, st.shares.iter().map(|s| s.data.len()));
+            // `Y` is stored only where it is not formed point by point and used at once.
+            let stores_y = schur::stores_y(st);
+            if stores_y && self.y.len() != self.w.len() {
+                self.y.resize(self.w.len(), 0.0);
+            }
+            let y_len = |s: &Share| if stores_y { s.data.len() } else { 0 };
+            let y = split_lengths(&mut self.y, st.shares.iter().map(y_len));
             let sums = std::iter::once((&mut self.damped[..], &mut delta[..nr])).chain(
                 self.helpers
                     .iter_mut()

@@ -6,6 +6,9 @@
 //! `f64::mul_add`.
 
 use super::{Coupling, LinearError, SchurPair, Share, Structure, MIN_DIAGONAL};
+#[cfg(target_arch = "x86_64")]
+use crate::four::{avx2_fma, Avx};
+use crate::four::{Four, Portable};
 use nalgebra::{Matrix3, Vector3};
 
 /// What elimination reads, shared by every thread.
@@ -29,7 +32,7 @@ pub(super) fn eliminate(
     s: &mut [f64],
 ) -> Result<(), LinearError> {
     #[cfg(target_arch = "x86_64")]
-    if std::arch::is_x86_feature_detected!("avx2") && std::arch::is_x86_feature_detected!("fma") {
+    if avx2_fma() {
         // SAFETY: the CPU has just been found to support AVX2 and FMA.
         return unsafe { eliminate_avx2(st, share, lambda, input, v_inv, y, rhs, s) };
     }
@@ -66,52 +69,19 @@ fn eliminate_portable(
     rhs: &mut [f64],
     s: &mut [f64],
 ) -> Result<(), LinearError> {
-    let nr = st.n_reduced;
     let base = share.data.start;
+    #[cfg(target_arch = "x86_64")]
+    if let (Some(poses), false) = (st.pose_blocks, stores_y(st)) {
+        // Bundle adjustment: each point's `Y` is formed and used at once, never stored.
+        // SAFETY: the CPU has just been found to support AVX2 and FMA.
+        return unsafe { pose_blocks::eliminate(st, share, poses, lambda, input, v_inv, rhs, s) };
+    }
     for (e, v_inv) in share.elim.clone().zip(v_inv.iter_mut()) {
-        let mut v = input.v[e];
-        for c in 0..3 {
-            v[(c, c)] += lambda * v[(c, c)].max(MIN_DIAGONAL);
-        }
-        *v_inv = v
-            .cholesky()
-            .ok_or(LinearError::NotPositiveDefinite)?
-            .inverse();
-        let g_l = Vector3::from_column_slice(&input.g[nr + 3 * e..nr + 3 * e + 3]);
-        for cp in &st.couplings[st.coupling_start[e]..st.coupling_start[e + 1]] {
-            let d = cp.dim;
-            let w = &input.w[cp.data..cp.data + 3 * d];
-            let y = &mut y[cp.data - base..cp.data - base + 3 * d];
-            if d == 6 {
-                // A pose, as in bundle adjustment: fixed sizes, so that it vectorises.
-                let w: &[f64; 18] = w.try_into().expect("6 × 3");
-                let y: &mut [f64; 18] = y.try_into().expect("6 × 3");
-                let rhs: &mut [f64; 6] = (&mut rhs[cp.offset..cp.offset + 6])
-                    .try_into()
-                    .expect("6 rows");
-                for c in 0..3 {
-                    for rr in 0..6 {
-                        y[c * 6 + rr] = w[rr] * v_inv[(0, c)]
-                            + w[6 + rr] * v_inv[(1, c)]
-                            + w[12 + rr] * v_inv[(2, c)];
-                    }
-                }
-                for rr in 0..6 {
-                    rhs[rr] += y[rr] * g_l.x + y[6 + rr] * g_l.y + y[12 + rr] * g_l.z;
-                }
-                continue;
-            }
-            for c in 0..3 {
-                for rr in 0..d {
-                    y[c * d + rr] = w[rr] * v_inv[(0, c)]
-                        + w[d + rr] * v_inv[(1, c)]
-                        + w[2 * d + rr] * v_inv[(2, c)];
-                }
-            }
-            for rr in 0..d {
-                rhs[cp.offset + rr] += y[rr] * g_l.x + y[d + rr] * g_l.y + y[2 * d + rr] * g_l.z;
-            }
-        }
+        let couplings = &st.couplings[st.coupling_start[e]..st.coupling_start[e + 1]];
+        let y = couplings
+            .first()
+            .map_or(&mut [][..], |c| &mut y[c.data - base..]);
+        *v_inv = eliminate_one(st.n_reduced, e, lambda, &input, couplings, y, rhs)?;
     }
     if st.dense {
         schur_update_dense(st, share, y, input.w, s);
@@ -120,6 +90,79 @@ fn eliminate_portable(
         schur_update(pairs, &st.couplings, y, base, input.w, &st.col_ptr, s);
     }
     Ok(())
+}
+
+/// Eliminates variable `e` (its `couplings`, contiguous in `w` and `y`, the first at the start
+/// of `y`): writes their `Y = W·V⁻¹`, adds `Σ Y·g_l` to `rhs` and returns its damped `V⁻¹`.
+#[inline(always)]
+fn eliminate_one(
+    n_reduced: usize,
+    e: usize,
+    lambda: f64,
+    input: &Input<'_>,
+    couplings: &[Coupling],
+    y: &mut [f64],
+    rhs: &mut [f64],
+) -> Result<Matrix3<f64>, LinearError> {
+    let mut v = input.v[e];
+    for c in 0..3 {
+        v[(c, c)] += lambda * v[(c, c)].max(MIN_DIAGONAL);
+    }
+    let v_inv = v
+        .cholesky()
+        .ok_or(LinearError::NotPositiveDefinite)?
+        .inverse();
+    let g_l = Vector3::from_column_slice(&input.g[n_reduced + 3 * e..n_reduced + 3 * e + 3]);
+    let Some(first) = couplings.first() else {
+        return Ok(v_inv);
+    };
+    for cp in couplings {
+        let d = cp.dim;
+        let at = cp.data - first.data;
+        let w = &input.w[cp.data..cp.data + 3 * d];
+        let y = &mut y[at..at + 3 * d];
+        if d == 6 {
+            // A pose, as in bundle adjustment: fixed sizes, so that it vectorises.
+            let w: &[f64; 18] = w.try_into().expect("6 × 3");
+            let y: &mut [f64; 18] = y.try_into().expect("6 × 3");
+            let rhs: &mut [f64; 6] = (&mut rhs[cp.offset..cp.offset + 6])
+                .try_into()
+                .expect("6 rows");
+            for c in 0..3 {
+                for rr in 0..6 {
+                    y[c * 6 + rr] = w[rr] * v_inv[(0, c)]
+                        + w[6 + rr] * v_inv[(1, c)]
+                        + w[12 + rr] * v_inv[(2, c)];
+                }
+            }
+            for rr in 0..6 {
+                rhs[rr] += y[rr] * g_l.x + y[6 + rr] * g_l.y + y[12 + rr] * g_l.z;
+            }
+            continue;
+        }
+        for c in 0..3 {
+            for rr in 0..d {
+                y[c * d + rr] = w[rr] * v_inv[(0, c)]
+                    + w[d + rr] * v_inv[(1, c)]
+                    + w[2 * d + rr] * v_inv[(2, c)];
+            }
+        }
+        for rr in 0..d {
+            rhs[cp.offset + rr] += y[rr] * g_l.x + y[d + rr] * g_l.y + y[2 * d + rr] * g_l.z;
+        }
+    }
+    Ok(v_inv)
+}
+
+/// Whether [`eliminate`] stores `Y` (of `w`'s size): everywhere but in bundle adjustment
+/// (every reduced variable a pose) on a CPU with AVX2 and FMA, where each point's `Y` is used
+/// as it is formed.
+pub(super) fn stores_y(st: &Structure) -> bool {
+    #[cfg(target_arch = "x86_64")]
+    if st.pose_blocks.is_some() && avx2_fma() {
+        return false;
+    }
+    true
 }
 
 /// `δ_l = V⁻¹(−g_l − Σ Wᵀ·δ_r)` for the share's variables; `delta_l` holds `−g_l` on entry.
@@ -131,8 +174,44 @@ pub(super) fn back_substitute(
     delta_r: &[f64],
     delta_l: &mut [f64],
 ) {
+    #[cfg(target_arch = "x86_64")]
+    if avx2_fma() {
+        // SAFETY: the CPU has just been found to support AVX2 and FMA.
+        return unsafe { back_substitute_avx2(st, share, v_inv, w, delta_r, delta_l) };
+    }
+    back_substitute_with::<Portable>(st, share, v_inv, w, delta_r, delta_l)
+}
+
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2,fma")]
+unsafe fn back_substitute_avx2(
+    st: &Structure,
+    share: &Share,
+    v_inv: &[Matrix3<f64>],
+    w: &[f64],
+    delta_r: &[f64],
+    delta_l: &mut [f64],
+) {
+    back_substitute_with::<Avx>(st, share, v_inv, w, delta_r, delta_l)
+}
+
+/// [`back_substitute`]: a pose's `W_cᵀ·δ` (c = 0, 1, 2) is summed over the variable's
+/// couplings as four-lane products of the columns' first four rows plus the last two, and
+/// reduced once per variable.
+#[inline(always)]
+fn back_substitute_with<F: Four>(
+    st: &Structure,
+    share: &Share,
+    v_inv: &[Matrix3<f64>],
+    w: &[f64],
+    delta_r: &[f64],
+    delta_l: &mut [f64],
+) {
+    let load4 = |x: &[f64]| F::from_array([x[0], x[1], x[2], x[3]]);
     for (e, out) in share.elim.clone().zip(delta_l.chunks_exact_mut(3)) {
         let mut b = Vector3::from_column_slice(out);
+        let mut head = [F::splat(0.0); 3];
+        let mut tail = [0.0; 3];
         for cp in &st.couplings[st.coupling_start[e]..st.coupling_start[e + 1]] {
             let d = cp.dim;
             let w = &w[cp.data..cp.data + 3 * d];
@@ -140,14 +219,19 @@ pub(super) fn back_substitute(
             if d == 6 {
                 let w: &[f64; 18] = w.try_into().expect("6 × 3");
                 let dr: &[f64; 6] = dr.try_into().expect("6 entries");
+                let dr_head = load4(dr);
                 for c in 0..3 {
-                    b[c] -= dot6(&w[6 * c..6 * c + 6], dr);
+                    head[c] = load4(&w[6 * c..]).mul_add(dr_head, head[c]);
+                    tail[c] = w[6 * c + 5].mul_add(dr[5], w[6 * c + 4].mul_add(dr[4], tail[c]));
                 }
                 continue;
             }
             for c in 0..3 {
                 b[c] -= super::dot(&w[c * d..(c + 1) * d], dr);
             }
+        }
+        for c in 0..3 {
+            b[c] -= head[c].sum() + tail[c];
         }
         out.copy_from_slice((v_inv[e] * b).as_slice());
     }
@@ -231,23 +315,13 @@ fn schur_update_portable(
     }
 }
 
-#[inline(always)]
-fn dot6(a: &[f64], b: &[f64; 6]) -> f64 {
-    let a: &[f64; 6] = a.try_into().expect("6 entries");
-    (0..6).map(|i| a[i] * b[i]).sum()
-}
-
 /// `S −= Y·Wᵀ` over the share's eliminated variables when `S` is dense (the usual local bundle
 /// adjustment): column by column of each coupling `j`, the three entries of `W_j` in that
 /// column are loaded once and every coupling `i` before `j` updates its rows with them.
 fn schur_update_dense(st: &Structure, share: &Share, y: &[f64], w: &[f64], s: &mut [f64]) {
     #[cfg(target_arch = "x86_64")]
-    if std::arch::is_x86_feature_detected!("avx2") && std::arch::is_x86_feature_detected!("fma") {
-        if let Some(poses) = st.pose_blocks {
-            // SAFETY: the CPU has just been found to support AVX2 and FMA.
-            return unsafe { pose_blocks::update(st, share, poses, y, w, s) };
-        }
-        // SAFETY: as above.
+    if avx2_fma() {
+        // SAFETY: the CPU has just been found to support AVX2 and FMA.
         return unsafe { schur_update_dense_avx2(st, share, y, w, s) };
     }
     schur_update_dense_portable(st, share, y, w, s)
@@ -376,111 +450,126 @@ fn subtract_product_dyn(rows: &mut [f64], y: &[f64], w: [f64; 3]) {
     }
 }
 
-/// The dense Schur update of a bundle adjustment, where every reduced variable is a pose: `S`
-/// is copied into 6 × 6 blocks of 36 contiguous entries (column-major), and each block
-/// `S_ij −= Y_i·W_jᵀ` is nine vectors of four, each updated by three fused multiply–adds
-/// with no lane wasted (a column of six would take a vector of four and one of two). Each
-/// entry gets the same three fused operations in the same order as in [`poses_only`], so the
-/// bits do not depend on the CPU.
+/// The dense Schur update of a bundle adjustment, where every reduced variable is a pose. `S`
+/// is copied into 6 × 6 blocks of nine 2 × 2 tiles, one four-lane vector each: a tile's
+/// `Y_i` operand is two rows of a column of `Y_i` loaded twice over, its `W_j` operand two
+/// entries each repeated, so `W_j`'s nine operand vectors stay in registers while the blocks
+/// of every `i ≤ j` are updated, and `Y_i`'s are single loads. Each entry gets the same three
+/// fused multiply–adds in the same order as in [`poses_only`], so the bits do not depend on the
+/// CPU.
 #[cfg(target_arch = "x86_64")]
 mod pose_blocks {
-    use super::{Share, Structure};
+    use super::{Coupling, Input, LinearError, Share, Structure};
+    use nalgebra::Matrix3;
     use std::arch::x86_64::*;
+
+    /// Where entry `(r, k)` of a block lies among its 36: tile `(r/2, k/2)` at
+    /// `4·(3·(k/2) + r/2)`, lanes `(r even, k even), (r odd, k even), (r even, k odd), (odd, odd)`.
+    fn within(r: usize, k: usize) -> usize {
+        4 * (3 * (k / 2) + r / 2) + 2 * (k % 2) + r % 2
+    }
 
     /// Calls `visit(packed, block)` for every entry of `S`'s upper triangle: its index in the
     /// packed columns and in the block layout, where block `(bi, bj)` (`bi ≤ bj`) starts at
-    /// `(bj·poses + bi)·36`, column-major. A diagonal block's lower half is not visited.
+    /// `(bj·poses + bi)·36`. A diagonal block's lower half is not visited.
     fn for_each_entry(st: &Structure, poses: usize, mut visit: impl FnMut(usize, usize)) {
         for bj in 0..poses {
             for k in 0..6 {
                 let column = st.col_ptr[6 * bj + k];
                 for bi in 0..=bj {
                     let rows = if bi == bj { k + 1 } else { 6 };
-                    let block = (bj * poses + bi) * 36 + 6 * k;
+                    let block = (bj * poses + bi) * 36;
                     for r in 0..rows {
-                        visit(column + 6 * bi + r, block + r);
+                        visit(column + 6 * bi + r, block + within(r, k));
                     }
                 }
             }
         }
     }
 
-    /// Vector t of a block holds its entries 4t..4t+4, of columns ⌊(4t+q)/6⌋: W_j's entries
-    /// of those columns, for each of the three products m.
-    #[target_feature(enable = "avx2,fma")]
-    unsafe fn w_vectors(wj: &[f64; 18]) -> [[__m256d; 3]; 9] {
-        let mut wv = [[_mm256_setzero_pd(); 3]; 9];
-        for m in 0..3 {
-            let b: [__m256d; 6] = std::array::from_fn(|k| _mm256_set1_pd(wj[6 * m + k]));
-            for (g, pair) in b.chunks_exact(2).enumerate() {
-                wv[3 * g][m] = pair[0];
-                wv[3 * g + 1][m] = _mm256_blend_pd::<0b1100>(pair[0], pair[1]);
-                wv[3 * g + 2][m] = pair[1];
-            }
-        }
-        wv
-    }
-
-    /// `S −= Σ Y·Wᵀ` over the share's points, `S` packed as [`super::schur_update_dense`]'s.
+    /// Eliminates the share's points as [`super::eliminate`] does, each point's `Y` formed in
+    /// a scratch buffer and used at once for its Schur products (bundle adjustment's `Y` is
+    /// megabytes: writing it and reading it back cost more than forming it).
     ///
     /// # Safety
     /// The CPU must support AVX2 and FMA.
     #[target_feature(enable = "avx2,fma")]
-    pub(super) unsafe fn update(
+    #[allow(clippy::too_many_arguments)]
+    pub(super) unsafe fn eliminate(
         st: &Structure,
         share: &Share,
         poses: usize,
-        y: &[f64],
-        w: &[f64],
+        lambda: f64,
+        input: Input<'_>,
+        v_inv: &mut [Matrix3<f64>],
+        rhs: &mut [f64],
         s: &mut [f64],
-    ) {
+    ) -> Result<(), LinearError> {
         let mut blocks = vec![0.0; poses * poses * 36];
         for_each_entry(st, poses, |packed, block| blocks[block] = s[packed]);
-        let base = share.data.start;
-        // Per coupling of one point: its block index and W's vectors (see `w_vectors`).
-        let mut columns: Vec<(usize, [[__m256d; 3]; 9])> = Vec::new();
-        for e in share.elim.clone() {
+        let (mut y, mut starts) = (Vec::new(), Vec::new());
+        for (e, v_inv) in share.elim.clone().zip(v_inv.iter_mut()) {
             let couplings = &st.couplings[st.coupling_start[e]..st.coupling_start[e + 1]];
-            columns.clear();
-            columns.extend(couplings.iter().map(|c| {
-                let wj: &[f64; 18] = w[c.data..c.data + 18].try_into().expect("6 × 3");
-                (c.offset / 6, w_vectors(wj))
-            }));
-            for (ix, ci) in couplings.iter().enumerate() {
-                let yi: &[f64; 18] = y[ci.data - base..ci.data - base + 18]
-                    .try_into()
-                    .expect("6 × 3");
-                // The rows of vector t cycle with t mod 3: 0–3, then 4, 5, 0, 1, then 2–5.
-                let mut yv = [[_mm256_setzero_pd(); 3]; 3];
-                for m in 0..3 {
-                    let low = _mm256_loadu_pd(yi[6 * m..6 * m + 4].as_ptr());
-                    let high = _mm256_loadu_pd(yi[6 * m + 2..6 * m + 6].as_ptr());
-                    yv[0][m] = low;
-                    yv[1][m] = _mm256_permute2f128_pd::<0x21>(high, low);
-                    yv[2][m] = high;
+            y.resize(18 * couplings.len(), 0.0);
+            *v_inv = super::eliminate_one(st.n_reduced, e, lambda, &input, couplings, &mut y, rhs)?;
+            // Each coupling's pose index, times 36: where its blocks start in a block column.
+            starts.clear();
+            starts.extend(couplings.iter().map(|c| c.offset / 6 * 36));
+            update(&mut blocks, poses, couplings, &starts, &y, input.w);
+        }
+        for_each_entry(st, poses, |packed, block| s[packed] = blocks[block]);
+        Ok(())
+    }
+
+    /// `S −= Y·Wᵀ` for one point's couplings (all poses), whose `Y` blocks are `y` in order,
+    /// whose `W` blocks are in `w`, and whose poses' indices times 36 are `starts`.
+    #[target_feature(enable = "avx2,fma")]
+    unsafe fn update(
+        blocks: &mut [f64],
+        poses: usize,
+        couplings: &[Coupling],
+        starts: &[usize],
+        y: &[f64],
+        w: &[f64],
+    ) {
+        let m = couplings.len();
+        // What keeps every access below in bounds, checked once per point: the couplings'
+        // poses (and so their blocks) exist, and `y` holds a block per coupling.
+        assert!(starts.len() == m && y.len() == 18 * m);
+        assert!(starts.iter().all(|&b| b + 36 <= 36 * poses));
+        assert!(blocks.len() == 36 * poses * poses);
+        let (blocks, y) = (blocks.as_mut_ptr(), y.as_ptr());
+        for (jx, cj) in couplings.iter().enumerate() {
+            let wj: &[f64; 18] = w[cj.data..cj.data + 18].try_into().expect("6 × 3");
+            // Column pair q of W_j: (w[2q], w[2q], w[2q + 1], w[2q + 1]) of each product m.
+            let mut wv = [[_mm256_setzero_pd(); 3]; 3];
+            for (q, wv) in wv.iter_mut().enumerate() {
+                for (m, v) in wv.iter_mut().enumerate() {
+                    let pair = _mm_loadu_pd(wj[6 * m + 2 * q..].as_ptr());
+                    *v = _mm256_permute4x64_pd::<0b01_01_00_00>(_mm256_castpd128_pd256(pair));
                 }
-                let bi = columns[ix].0;
-                for (bj, wv) in &columns[ix..] {
-                    let at = (bj * poses + bi) * 36;
-                    let block: &mut [f64; 36] = (&mut blocks[at..at + 36])
-                        .try_into()
-                        .expect("a 6 × 6 block");
-                    let p = block.as_mut_ptr();
-                    // Nine vectors, unrolled: t = 3g + u.
-                    for g in 0..3 {
-                        for u in 0..3 {
-                            let (wv, yv, q) = (&wv[3 * g + u], &yv[u], p.add(12 * g + 4 * u));
-                            let mut v = _mm256_loadu_pd(q);
-                            v = _mm256_fnmadd_pd(yv[0], wv[0], v);
-                            v = _mm256_fnmadd_pd(yv[1], wv[1], v);
-                            v = _mm256_fnmadd_pd(yv[2], wv[2], v);
-                            _mm256_storeu_pd(q, v);
-                        }
+            }
+            let column = blocks.add(starts[jx] * poses);
+            for (ix, &start) in starts[..=jx].iter().enumerate() {
+                // SAFETY: block (i, j) lies within `blocks` and Y_i within `y` (asserts above).
+                let b = column.add(start);
+                let yi = y.add(18 * ix);
+                for p in 0..3 {
+                    // Row pair p of Y_i, twice: (y[2p], y[2p + 1], y[2p], y[2p + 1]).
+                    let yv: [__m256d; 3] = std::array::from_fn(|m| {
+                        _mm256_broadcast_pd(&*yi.add(6 * m + 2 * p).cast::<__m128d>())
+                    });
+                    for (q, wv) in wv.iter().enumerate() {
+                        let tile = b.add(4 * (3 * q + p));
+                        let mut v = _mm256_loadu_pd(tile);
+                        v = _mm256_fnmadd_pd(yv[0], wv[0], v);
+                        v = _mm256_fnmadd_pd(yv[1], wv[1], v);
+                        v = _mm256_fnmadd_pd(yv[2], wv[2], v);
+                        _mm256_storeu_pd(tile, v);
                     }
                 }
             }
         }
-        for_each_entry(st, poses, |packed, block| s[packed] = blocks[block]);
     }
 }
 
@@ -489,12 +578,11 @@ mod tests {
     use super::*;
     use crate::normal::NormalEquations;
     use crate::testing::{bundle_scene, BundleConfig, Rng};
+    use nalgebra::Matrix3;
 
     #[test]
-    fn pose_blocks_give_the_bits_of_the_column_by_column_update() {
-        if !(std::arch::is_x86_feature_detected!("avx2")
-            && std::arch::is_x86_feature_detected!("fma"))
-        {
+    fn pose_blocks_give_the_bits_of_the_column_by_column_elimination() {
+        if !avx2_fma() {
             return;
         }
         let config = BundleConfig {
@@ -511,18 +599,49 @@ mod tests {
         let share = &st.shares[0];
         let mut rng = Rng::new(4);
         let mut random = |n: usize| -> Vec<f64> { (0..n).map(|_| rng.normal()).collect() };
-        let (y, w) = (random(system.w.len()), random(system.w.len()));
-        let start = random(system.h.len());
-        let mut expected = start.clone();
-        schur_update_dense_portable(st, share, &y, &w, &mut expected);
-        let mut blocks = start.clone();
+        let (w, g) = (random(system.w.len()), random(system.g.len()));
+        // Positive definite point blocks: A·Aᵀ + I.
+        let v: Vec<Matrix3<f64>> = random(9 * system.v.len())
+            .chunks_exact(9)
+            .map(|a| {
+                let a = Matrix3::from_column_slice(a);
+                a * a.transpose() + Matrix3::identity()
+            })
+            .collect();
+        let (start_s, start_rhs) = (random(system.h.len()), random(st.n_reduced));
+        let input = || Input {
+            v: &v,
+            w: &w,
+            g: &g,
+        };
+        let lambda = 1e-3;
+        // Column by column, `Y` stored first.
+        let (mut s_expected, mut rhs_expected) = (start_s.clone(), start_rhs.clone());
+        let mut y = vec![0.0; w.len()];
+        let mut v_expected = vec![Matrix3::zeros(); v.len()];
+        for (e, v_inv) in share.elim.clone().zip(&mut v_expected) {
+            let couplings = &st.couplings[st.coupling_start[e]..st.coupling_start[e + 1]];
+            let y = couplings.first().map_or(&mut [][..], |c| &mut y[c.data..]);
+            let (input, rhs) = (input(), &mut rhs_expected);
+            *v_inv = eliminate_one(st.n_reduced, e, lambda, &input, couplings, y, rhs).unwrap();
+        }
+        schur_update_dense_portable(st, share, &y, &w, &mut s_expected);
+        // In pose blocks, each point's `Y` used at once.
+        let (mut s_blocks, mut rhs_blocks) = (start_s.clone(), start_rhs.clone());
+        let mut v_blocks = vec![Matrix3::zeros(); v.len()];
         // SAFETY: the CPU supports AVX2 and FMA (checked above).
-        unsafe { pose_blocks::update(st, share, poses, &y, &w, &mut blocks) };
-        assert_ne!(expected, start);
-        let same = expected
-            .iter()
-            .zip(&blocks)
-            .all(|(a, b)| a.to_bits() == b.to_bits());
-        assert!(same, "the two updates differ");
+        unsafe {
+            let (v_inv, rhs, s) = (&mut v_blocks, &mut rhs_blocks, &mut s_blocks);
+            pose_blocks::eliminate(st, share, poses, lambda, input(), v_inv, rhs, s).unwrap()
+        };
+        assert_ne!(s_expected, start_s);
+        let bits = |x: &[f64]| -> Vec<u64> { x.iter().map(|v| v.to_bits()).collect() };
+        assert_eq!(bits(&s_blocks), bits(&s_expected), "S differs");
+        assert_eq!(
+            bits(&rhs_blocks),
+            bits(&rhs_expected),
+            "the right-hand side differs"
+        );
+        assert_eq!(v_blocks, v_expected);
     }
 }
