@@ -36,11 +36,24 @@ pub(crate) trait Four:
         let [a, b, c, d] = self.to_array();
         (a + b) + (c + d)
     }
-    /// Rows `k` of the four lanes' entries: `out[l][k] = columns[k][l]`.
+    /// The 4 × 4 transpose: lane `l` of `out[k]` is lane `k` of `columns[l]`.
     #[inline(always)]
-    fn transpose(columns: [Self; 4]) -> [[f64; 4]; 4] {
-        let c = columns.map(Self::to_array);
-        std::array::from_fn(|l| std::array::from_fn(|k| c[k][l]))
+    fn transpose(columns: [Self; 4]) -> [Self; 4] {
+        let [a, b, c, d] = columns;
+        let (a, b, c, d) = (a.to_array(), b.to_array(), c.to_array(), d.to_array());
+        [
+            Self::from_array([a[0], b[0], c[0], d[0]]),
+            Self::from_array([a[1], b[1], c[1], d[1]]),
+            Self::from_array([a[2], b[2], c[2], d[2]]),
+            Self::from_array([a[3], b[3], c[3], d[3]]),
+        ]
+    }
+
+    /// [`Self::transpose`] as arrays: `out[l][k] = columns[k][l]`.
+    #[inline(always)]
+    fn transpose_to_arrays(columns: [Self; 4]) -> [[f64; 4]; 4] {
+        let [a, b, c, d] = Self::transpose(columns);
+        [a.to_array(), b.to_array(), c.to_array(), d.to_array()]
     }
 }
 
@@ -200,7 +213,7 @@ mod avx {
             (a + b) + (c + d)
         }
         #[inline(always)]
-        fn transpose(columns: [Self; 4]) -> [[f64; 4]; 4] {
+        fn transpose(columns: [Self; 4]) -> [Self; 4] {
             unsafe {
                 let [a, b, c, d] = columns.map(|x| x.0);
                 // Pairs of lanes (0, 1) and (2, 3) interleaved, then halves swapped across.
@@ -214,7 +227,8 @@ mod avx {
                     _mm256_permute2f128_pd::<0x31>(ab_lo, cd_lo), // a2 b2 c2 d2
                     _mm256_permute2f128_pd::<0x31>(ab_hi, cd_hi), // a3 b3 c3 d3
                 ];
-                rows.map(|r| Avx(r).to_array())
+                let [r0, r1, r2, r3] = rows;
+                [Avx(r0), Avx(r1), Avx(r2), Avx(r3)]
             }
         }
     }
@@ -252,7 +266,7 @@ mod tests {
             x.select_lt(y, z, y).to_array(),
             [x.sum(), 0.0, 0.0, 0.0],
         ];
-        out.extend(Avx::transpose([x, y, z, x * z]));
+        out.extend(Avx::transpose_to_arrays([x, y, z, x * z]));
         out
     }
 
@@ -271,7 +285,7 @@ mod tests {
             x.select_lt(y, z, y).0,
             [x.sum(), 0.0, 0.0, 0.0],
         ];
-        out.extend(Portable::transpose([x, y, z, x * z]));
+        out.extend(Portable::transpose_to_arrays([x, y, z, x * z]));
         out
     }
 

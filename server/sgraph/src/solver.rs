@@ -68,7 +68,9 @@ pub struct Iteration {
     pub lambda: f64,
     pub step_norm: f64,
     pub accepted: bool,
-    /// Time to linearise (evaluate factors, assemble `H` and `g`).
+    /// Time spent linearising (evaluating factors, assembling `H` and `g`) in this iteration:
+    /// the tried step's values while steps are accepted (the first iteration also counts the
+    /// start), the current values again after a rejection.
     pub linearize_time: Duration,
     /// Time to factor and solve.
     pub solve_time: Duration,
@@ -156,7 +158,19 @@ impl Solver {
         // Pose views go with their values: a candidate's serve its cost and, once accepted,
         // the next linearisation.
         let mut views = problem.pose_views(&problem.values);
-        let initial_cost = system.cost(entries, &problem.values, &views);
+        // The system holds the linearisation at the current values (`current`), whose gradient
+        // is still to be checked (`unchecked`). A candidate is linearised whole while steps
+        // are being accepted (its cost comes with it, and once accepted its system is the next
+        // one); after a rejection only its cost is evaluated until a step is accepted again,
+        // so a streak of rejections costs one linearisation too many, not one per step.
+        let nothing_to_do = system.dim() == 0 || entries.is_empty();
+        let t = Instant::now();
+        let initial_cost = if nothing_to_do {
+            system.cost(entries, &problem.values, &views)
+        } else {
+            system.linearize(entries, &problem.values, &views)
+        };
+        let mut linearize_time = t.elapsed();
         if !initial_cost.is_finite() {
             return Err(SolveError::NonFiniteInitialCost(initial_cost));
         }
@@ -171,7 +185,7 @@ impl Solver {
             threads: workers,
             total_time: Duration::ZERO,
         };
-        if system.dim() == 0 || entries.is_empty() {
+        if nothing_to_do {
             report.total_time = start.elapsed();
             return Ok(report);
         }
@@ -184,15 +198,17 @@ impl Solver {
         let mut candidate = problem.values.clone();
         let mut candidate_views = views.clone();
         let need_views = problem.reprojections > 0;
-        let mut needs_linearize = true;
-        let mut linearize_time = Duration::ZERO;
+        let (mut current, mut unchecked, mut optimistic) = (true, true, true);
         report.termination = Termination::MaxIterations;
         for iteration in 1..=opts.max_iterations {
-            if needs_linearize {
+            if !current {
                 let t = Instant::now();
                 system.linearize(entries, &problem.values, &views);
-                linearize_time = t.elapsed();
-                needs_linearize = false;
+                linearize_time += t.elapsed();
+                (current, unchecked) = (true, true);
+            }
+            if unchecked {
+                unchecked = false;
                 if system.gradient_max() < opts.gradient_tolerance {
                     report.termination = Termination::GradientConverged;
                     break;
@@ -241,9 +257,18 @@ impl Solver {
                     it.step_norm = step_norm;
                     apply_step(&problem.values, system.offsets(), &delta, &mut candidate);
                     candidate_views.update(&candidate, need_views);
-                    let new_cost = system.cost(entries, &candidate, &candidate_views);
-                    it.tried_cost = new_cost;
+                    // The model's prediction first: linearising the candidate replaces it.
                     let predicted = system.predicted_decrease(damping, &delta);
+                    let new_cost = if optimistic {
+                        let t = Instant::now();
+                        let c = system.linearize(entries, &candidate, &candidate_views);
+                        it.linearize_time += t.elapsed();
+                        current = false;
+                        c
+                    } else {
+                        system.cost(entries, &candidate, &candidate_views)
+                    };
+                    it.tried_cost = new_cost;
                     let actual = cost - new_cost;
                     if new_cost.is_finite() && actual > 0.0 {
                         std::mem::swap(&mut problem.values, &mut candidate);
@@ -252,7 +277,9 @@ impl Solver {
                         it.cost = new_cost;
                         cost = new_cost;
                         rejections = 0;
-                        needs_linearize = true;
+                        // The candidate's system, if it was linearised, is now the current one.
+                        (current, unchecked) = (optimistic, optimistic);
+                        optimistic = true;
                         let rho = actual / predicted.max(f64::MIN_POSITIVE);
                         lambda *= (1.0 - (2.0 * rho - 1.0).powi(3)).max(1.0 / 3.0);
                         lambda = lambda.max(1e-12);
@@ -281,6 +308,7 @@ impl Solver {
                         lambda *= nu;
                         nu *= 2.0;
                         rejections += 1;
+                        optimistic = false;
                     }
                 }
             }

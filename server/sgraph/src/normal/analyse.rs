@@ -84,19 +84,48 @@ impl NormalEquations {
             .iter()
             .map(|e| e.factor.keys().iter().copied().find(|k| elim[k.index()]))
             .collect();
-        let mut neighbours: Vec<Vec<(usize, usize)>> = vec![Vec::new(); num_elim];
+        // In one array, each variable's run counted first (a vector per point is thousands of
+        // small allocations), then sorted and deduplicated in place.
+        let mut nb_start = vec![0usize; num_elim + 1];
         for (e, l) in entries.iter().zip(&elim_of) {
             if let Some(l) = l {
-                let nb = &mut neighbours[elim_index[l.index()]];
+                nb_start[elim_index[l.index()] + 1] +=
+                    e.factor.keys().iter().filter(|&&k| is_reduced(k)).count();
+            }
+        }
+        for i in 0..num_elim {
+            nb_start[i + 1] += nb_start[i];
+        }
+        let mut flat = vec![(0usize, 0usize); nb_start[num_elim]];
+        let mut next = nb_start.clone();
+        for (e, l) in entries.iter().zip(&elim_of) {
+            if let Some(l) = l {
+                let at = &mut next[elim_index[l.index()]];
                 for &r in e.factor.keys().iter().filter(|&&k| is_reduced(k)) {
-                    nb.push((offset[r.index()], kind_of(r).dim()));
+                    flat[*at] = (offset[r.index()], kind_of(r).dim());
+                    *at += 1;
                 }
             }
         }
-        for nb in &mut neighbours {
-            nb.sort_unstable();
-            nb.dedup();
+        let mut kept = 0;
+        for i in 0..num_elim {
+            let run = &mut flat[nb_start[i]..nb_start[i + 1]];
+            run.sort_unstable();
+            let mut len = 0;
+            for j in 0..run.len() {
+                if len == 0 || run[j] != run[len - 1] {
+                    run[len] = run[j];
+                    len += 1;
+                }
+            }
+            flat.copy_within(nb_start[i]..nb_start[i] + len, kept);
+            nb_start[i] = kept;
+            kept += len;
         }
+        nb_start[num_elim] = kept;
+        flat.truncate(kept);
+        let neighbours: Vec<&[(usize, usize)]> =
+            nb_start.windows(2).map(|w| &flat[w[0]..w[1]]).collect();
         // Block rows of each block column of S, keyed by column offset then row offset.
         let mut blocks: BTreeMap<usize, BTreeMap<usize, usize>> = BTreeMap::new();
         for id in values.ids().filter(|&id| is_reduced(id)) {
@@ -128,7 +157,7 @@ impl NormalEquations {
                     }
                 }
             }
-            for nb in &neighbours {
+            for nb in neighbours.iter().copied() {
                 for (i, &(oa, da)) in nb.iter().enumerate() {
                     for &(ob, _) in &nb[i..] {
                         blocks.entry(ob).or_default().insert(oa, da);
@@ -174,7 +203,7 @@ impl NormalEquations {
         let mut pair_start = Vec::with_capacity(num_elim + 1);
         let mut pairs = Vec::new();
         let mut w_len = 0;
-        for nb in &neighbours {
+        for nb in neighbours.iter().copied() {
             coupling_start.push(couplings.len());
             pair_start.push(pairs.len());
             let first = couplings.len();

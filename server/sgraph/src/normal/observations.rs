@@ -373,7 +373,8 @@ impl Chunk {
         views: &PoseViews,
         cameras: &[[f64; 4]],
     ) -> Evaluated<'_, F> {
-        // Each lane's pose: `R_cw` and the centre, gathered.
+        // Each lane's pose: `R_cw` and the centre, gathered. (No closures over lanes in this
+        // kernel: in the AVX2 build they would be compiled apart, without AVX2.)
         let [p0, p1, p2, p3] = self.pose;
         let v = [
             views.get(VarId(p0)),
@@ -463,13 +464,13 @@ impl Chunk {
         let (g, n, x, gp) = (&b.g, &b.n, &b.x, &b.g_pose);
         let zero = F::splat(0.0);
         let quads = [
-            F::transpose([g[0], g[1], g[2], g[3]]),
-            F::transpose([g[4], n[0], n[1], n[2]]),
-            F::transpose([n[3], n[4], n[5], n[6]]),
-            F::transpose([n[7], n[8], x[0], x[1]]),
-            F::transpose([x[2], x[3], x[4], x[5]]),
-            F::transpose([gp[0], gp[1], gp[2], gp[3]]),
-            F::transpose([gp[4], gp[5], zero, zero]),
+            F::transpose_to_arrays([g[0], g[1], g[2], g[3]]),
+            F::transpose_to_arrays([g[4], n[0], n[1], n[2]]),
+            F::transpose_to_arrays([n[3], n[4], n[5], n[6]]),
+            F::transpose_to_arrays([n[7], n[8], x[0], x[1]]),
+            F::transpose_to_arrays([x[2], x[3], x[4], x[5]]),
+            F::transpose_to_arrays([gp[0], gp[1], gp[2], gp[3]]),
+            F::transpose_to_arrays([gp[4], gp[5], zero, zero]),
         ];
         for l in 0..LANES {
             if self.slot[l] == NONE {
@@ -484,10 +485,10 @@ impl Chunk {
         }
         let c = &b.coupling;
         let quads = [
-            F::transpose([c[0], c[1], c[2], c[3]]),
-            F::transpose([c[4], c[5], c[6], c[7]]),
-            F::transpose([c[8], c[9], c[10], c[11]]),
-            F::transpose([c[12], c[13], c[14], c[15]]),
+            F::transpose_to_arrays([c[0], c[1], c[2], c[3]]),
+            F::transpose_to_arrays([c[4], c[5], c[6], c[7]]),
+            F::transpose_to_arrays([c[8], c[9], c[10], c[11]]),
+            F::transpose_to_arrays([c[12], c[13], c[14], c[15]]),
         ];
         let (c16, c17) = (c[16].to_array(), c[17].to_array());
         for l in 0..LANES {

@@ -81,7 +81,7 @@ fn eliminate_portable(
         let y = couplings
             .first()
             .map_or(&mut [][..], |c| &mut y[c.data - base..]);
-        *v_inv = eliminate_one(st.n_reduced, e, lambda, &input, couplings, y, rhs)?;
+        *v_inv = eliminate_one::<Portable>(st.n_reduced, e, lambda, &input, couplings, y, rhs)?;
     }
     if st.dense {
         schur_update_dense(st, share, y, input.w, s);
@@ -94,8 +94,10 @@ fn eliminate_portable(
 
 /// Eliminates variable `e` (its `couplings`, contiguous in `w` and `y`, the first at the start
 /// of `y`): writes their `Y = W·V⁻¹`, adds `Σ Y·g_l` to `rhs` and returns its damped `V⁻¹`.
+/// A pose's `Y` takes four rows at a time in lanes; the products and sums are the scalar
+/// ones, so every lane type gives the same bits.
 #[inline(always)]
-fn eliminate_one(
+fn eliminate_one<F: Four>(
     n_reduced: usize,
     e: usize,
     lambda: f64,
@@ -116,28 +118,38 @@ fn eliminate_one(
     let Some(first) = couplings.first() else {
         return Ok(v_inv);
     };
+    let vi: [[F; 3]; 3] = std::array::from_fn(|c| std::array::from_fn(|r| F::splat(v_inv[(r, c)])));
+    let gv = [F::splat(g_l.x), F::splat(g_l.y), F::splat(g_l.z)];
+    let head = |x: &[f64]| F::from_array([x[0], x[1], x[2], x[3]]);
     for cp in couplings {
         let d = cp.dim;
         let at = cp.data - first.data;
         let w = &input.w[cp.data..cp.data + 3 * d];
         let y = &mut y[at..at + 3 * d];
         if d == 6 {
-            // A pose, as in bundle adjustment: fixed sizes, so that it vectorises.
+            // A pose, as in bundle adjustment: rows 0–3 and rows 2–5 in lanes (rows 2 and 3
+            // twice, the same numbers both times).
             let w: &[f64; 18] = w.try_into().expect("6 × 3");
             let y: &mut [f64; 18] = y.try_into().expect("6 × 3");
             let rhs: &mut [f64; 6] = (&mut rhs[cp.offset..cp.offset + 6])
                 .try_into()
                 .expect("6 rows");
-            for c in 0..3 {
-                for rr in 0..6 {
-                    y[c * 6 + rr] = w[rr] * v_inv[(0, c)]
-                        + w[6 + rr] * v_inv[(1, c)]
-                        + w[12 + rr] * v_inv[(2, c)];
+            let mut r = [head(&rhs[0..]), head(&rhs[2..])];
+            for (half, r) in [0, 2].into_iter().zip(&mut r) {
+                let (w0, w1, w2) = (
+                    head(&w[half..]),
+                    head(&w[6 + half..]),
+                    head(&w[12 + half..]),
+                );
+                let mut yc = [F::splat(0.0); 3];
+                for (c, yc) in yc.iter_mut().enumerate() {
+                    *yc = w0 * vi[c][0] + w1 * vi[c][1] + w2 * vi[c][2];
+                    y[6 * c + half..6 * c + half + 4].copy_from_slice(&yc.to_array());
                 }
+                *r = *r + (yc[0] * gv[0] + yc[1] * gv[1] + yc[2] * gv[2]);
             }
-            for rr in 0..6 {
-                rhs[rr] += y[rr] * g_l.x + y[6 + rr] * g_l.y + y[12 + rr] * g_l.z;
-            }
+            rhs[0..4].copy_from_slice(&r[0].to_array());
+            rhs[2..6].copy_from_slice(&r[1].to_array());
             continue;
         }
         for c in 0..3 {
@@ -460,6 +472,7 @@ fn subtract_product_dyn(rows: &mut [f64], y: &[f64], w: [f64; 3]) {
 #[cfg(target_arch = "x86_64")]
 mod pose_blocks {
     use super::{Coupling, Input, LinearError, Share, Structure};
+    use crate::four::Avx;
     use nalgebra::Matrix3;
     use std::arch::x86_64::*;
 
@@ -511,7 +524,15 @@ mod pose_blocks {
         for (e, v_inv) in share.elim.clone().zip(v_inv.iter_mut()) {
             let couplings = &st.couplings[st.coupling_start[e]..st.coupling_start[e + 1]];
             y.resize(18 * couplings.len(), 0.0);
-            *v_inv = super::eliminate_one(st.n_reduced, e, lambda, &input, couplings, &mut y, rhs)?;
+            *v_inv = super::eliminate_one::<Avx>(
+                st.n_reduced,
+                e,
+                lambda,
+                &input,
+                couplings,
+                &mut y,
+                rhs,
+            )?;
             // Each coupling's pose index, times 36: where its blocks start in a block column.
             starts.clear();
             starts.extend(couplings.iter().map(|c| c.offset / 6 * 36));
@@ -623,7 +644,8 @@ mod tests {
             let couplings = &st.couplings[st.coupling_start[e]..st.coupling_start[e + 1]];
             let y = couplings.first().map_or(&mut [][..], |c| &mut y[c.data..]);
             let (input, rhs) = (input(), &mut rhs_expected);
-            *v_inv = eliminate_one(st.n_reduced, e, lambda, &input, couplings, y, rhs).unwrap();
+            *v_inv = eliminate_one::<Portable>(st.n_reduced, e, lambda, &input, couplings, y, rhs)
+                .unwrap();
         }
         schur_update_dense_portable(st, share, &y, &w, &mut s_expected);
         // In pose blocks, each point's `Y` used at once.
