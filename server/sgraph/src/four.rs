@@ -32,6 +32,7 @@ pub(crate) trait Four:
         other.select_gt(self, then, otherwise)
     }
     /// `(a + b) + (c + d)` of the lanes.
+    #[inline(always)]
     fn sum(self) -> f64 {
         let [a, b, c, d] = self.to_array();
         (a + b) + (c + d)
@@ -206,11 +207,6 @@ mod avx {
                 let mask = _mm256_cmp_pd::<_CMP_GT_OQ>(self.0, other.0);
                 Self(_mm256_blendv_pd(otherwise.0, then.0, mask))
             }
-        }
-        #[inline(always)]
-        fn sum(self) -> f64 {
-            let [a, b, c, d] = self.to_array();
-            (a + b) + (c + d)
         }
         #[inline(always)]
         fn transpose(columns: [Self; 4]) -> [Self; 4] {
