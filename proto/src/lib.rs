@@ -18,5 +18,6 @@ pub mod v1 {
 
 pub use prost::Message;
 pub use v1::{
-    CameraModel, ColourEncoding, ColourImage, DepthEncoding, DepthImage, PixelFormat, RgbdFrame,
+    CameraModel, ColourEncoding, ColourImage, DepthEncoding, DepthImage, DepthRegistration,
+    PixelFormat, RgbdFrame,
 };

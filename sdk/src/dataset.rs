@@ -9,13 +9,14 @@
 //!   `camera-intrinsics.txt` (3×3 matrix); no timestamps, so frames are 1/30 s apart.
 //!
 //! `camera.json` (either layout) overrides the intrinsics:
-//! `{"fx":..,"fy":..,"cx":..,"cy":..,"distortion":[..],"depth_scale":..}` (distortion and
-//! depth_scale optional).
+//! `{"fx":..,"fy":..,"cx":..,"cy":..,"distortion":[..],"depth_scale":..,"depth_registered":..}`
+//! (distortion, depth_scale and depth_registered optional; depth_registered false says the depth
+//! images are not aligned to the colour ones).
 
 use std::fs;
 use std::path::{Path, PathBuf};
 use thiserror::Error;
-use vsgraphs_proto::CameraModel;
+use vsgraphs_proto::{CameraModel, DepthRegistration};
 
 /// Largest colour–depth time difference for TUM association, as TUM's tools use.
 pub const TUM_MAX_DIFFERENCE_NS: u64 = 20_000_000;
@@ -66,6 +67,10 @@ pub struct Dataset {
     pub camera: CameraModel,
     /// Depth units per metre.
     pub depth_scale: f64,
+    /// How the depth images line up with the colour ones: registered for TUM RGB-D, not for
+    /// 7-Scenes (its README: "not perfectly registered"); `camera.json`'s `depth_registered`
+    /// says so for any sequence.
+    pub depth_registration: DepthRegistration,
     pub frames: Vec<FrameFiles>,
     /// Notes for the user (e.g. default intrinsics used).
     pub warnings: Vec<String>,
@@ -209,6 +214,7 @@ fn open_tum(root: &Path) -> Result<Dataset, DatasetError> {
         layout: Layout::Tum,
         camera: camera_model(width, height, intrinsics, distortion),
         depth_scale: 5000.0,
+        depth_registration: DepthRegistration::Registered,
         frames,
         warnings,
     };
@@ -247,6 +253,7 @@ fn open_seven_scenes(root: &Path) -> Result<Dataset, DatasetError> {
         layout: Layout::SevenScenes,
         camera: camera_model(width, height, intrinsics, vec![]),
         depth_scale: 1000.0,
+        depth_registration: DepthRegistration::Unregistered,
         frames,
         warnings,
     };
@@ -295,6 +302,7 @@ struct CameraJson {
     #[serde(default)]
     distortion: Vec<f64>,
     depth_scale: Option<f64>,
+    depth_registered: Option<bool>,
 }
 
 fn apply_camera_json(dataset: &mut Dataset) -> Result<(), DatasetError> {
@@ -316,6 +324,13 @@ fn apply_camera_json(dataset: &mut Dataset) -> Result<(), DatasetError> {
     );
     if let Some(scale) = camera.depth_scale {
         dataset.depth_scale = scale;
+    }
+    if let Some(registered) = camera.depth_registered {
+        dataset.depth_registration = if registered {
+            DepthRegistration::Registered
+        } else {
+            DepthRegistration::Unregistered
+        };
     }
     Ok(())
 }
@@ -429,5 +444,28 @@ mod tests {
         assert_eq!(dataset.frames.len(), 1);
         assert_eq!(dataset.frames[0].timestamp_ns, 1_005_000_000);
         assert!(dataset.warnings.is_empty());
+        assert_eq!(dataset.depth_registration, DepthRegistration::Registered);
+    }
+
+    #[test]
+    fn seven_scenes_depth_is_unregistered_unless_camera_json_says_otherwise() {
+        let dir = tempfile::tempdir().unwrap();
+        let depth = vsgraphs_proto::png16::encode(&[1000; 12], 4, 3).unwrap();
+        fs::write(dir.path().join("frame-000000.depth.png"), depth).unwrap();
+        fs::write(dir.path().join("frame-000000.color.jpg"), b"").unwrap();
+        let dataset = open(dir.path()).unwrap();
+        assert_eq!(dataset.layout, Layout::SevenScenes);
+        assert_eq!(dataset.depth_registration, DepthRegistration::Unregistered);
+        for (registered, expected) in [
+            (true, DepthRegistration::Registered),
+            (false, DepthRegistration::Unregistered),
+        ] {
+            fs::write(
+                dir.path().join("camera.json"),
+                format!(r#"{{"fx":2,"fy":2,"cx":2,"cy":1.5,"depth_registered":{registered}}}"#),
+            )
+            .unwrap();
+            assert_eq!(open(dir.path()).unwrap().depth_registration, expected);
+        }
     }
 }

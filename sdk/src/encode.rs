@@ -2,7 +2,8 @@
 
 use thiserror::Error;
 use vsgraphs_proto::{
-    png16, rvl, ColourEncoding, ColourImage, DepthEncoding, DepthImage, PixelFormat,
+    png16, rvl, ColourEncoding, ColourImage, DepthEncoding, DepthImage, DepthRegistration,
+    PixelFormat,
 };
 
 #[derive(Debug, Error)]
@@ -132,6 +133,7 @@ pub fn depth(
     Ok(DepthImage {
         encoding: encoding as i32,
         data,
+        registration: DepthRegistration::Unspecified as i32,
     })
 }
 

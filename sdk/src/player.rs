@@ -11,7 +11,9 @@ use std::path::PathBuf;
 use std::time::{Duration, Instant};
 use thiserror::Error;
 use tokio::sync::mpsc;
-use vsgraphs_proto::{png16, ColourEncoding, ColourImage, DepthEncoding, DepthImage, PixelFormat};
+use vsgraphs_proto::{
+    png16, ColourEncoding, ColourImage, DepthEncoding, DepthImage, DepthRegistration, PixelFormat,
+};
 
 /// How fast to play.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -130,6 +132,7 @@ pub fn load_frame(
             DepthImage {
                 encoding: DepthEncoding::Png16 as i32,
                 data: depth_bytes,
+                registration: DepthRegistration::Unspecified as i32,
             },
             raw,
         ));
@@ -218,7 +221,8 @@ pub async fn play(
         }
         attempted += 1;
         match loaded.result {
-            Ok((colour, depth, raw_depth)) => {
+            Ok((colour, mut depth, raw_depth)) => {
+                depth.set_registration(dataset.depth_registration);
                 summary.depth_bytes += depth.data.len() as u64;
                 summary.depth_raw_bytes += raw_depth;
                 let (_, size) = robot

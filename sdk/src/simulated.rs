@@ -13,7 +13,9 @@ use std::sync::Arc;
 use std::time::{Duration, Instant};
 use thiserror::Error;
 use tokio::sync::mpsc;
-use vsgraphs_proto::{CameraModel, ColourImage, DepthEncoding, DepthImage, PixelFormat};
+use vsgraphs_proto::{
+    CameraModel, ColourImage, DepthEncoding, DepthImage, DepthRegistration, PixelFormat,
+};
 use vsgraphs_sim::sequence::render_frame;
 use vsgraphs_sim::walk::Walk;
 use vsgraphs_sim::{Frame as SimFrame, Renderer};
@@ -103,12 +105,14 @@ pub fn encode_frame(
         PixelFormat::Rgb8,
         jpeg_quality,
     )?;
-    let depth = encode::depth(
+    let mut depth = encode::depth(
         &frame.depth_units(DEPTH_SCALE),
         frame.width,
         frame.height,
         depth_codec,
     )?;
+    // Rendered from the colour camera's own viewpoint.
+    depth.set_registration(DepthRegistration::Registered);
     Ok((colour, depth))
 }
 

@@ -162,6 +162,8 @@ fn write_robot(
         &serde_json::json!({
             "fx": camera.fx, "fy": camera.fy, "cx": camera.cx, "cy": camera.cy,
             "distortion": [], "depth_scale": TUM_DEPTH_SCALE,
+            // Rendered from the colour camera's own viewpoint.
+            "depth_registered": true,
         })
         .to_string(),
     )?;

@@ -84,6 +84,7 @@ fn a_marker_rendered_at_one_metre_is_found_within_1cm_and_1deg() {
                 height: 480,
                 data: frame.depth_units(1000.0),
                 depth_scale: 1000.0,
+                registered: true,
             };
             let estimate = estimator.estimate(found[0], Some((&depth, 0.15))).unwrap();
             // The detected corners against the true ones (top-left, top-right, bottom-right,

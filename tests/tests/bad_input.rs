@@ -107,6 +107,7 @@ async fn bad_frames_are_rejected_with_reasons_and_the_stream_goes_on() {
     let odd_depth = DepthImage {
         encoding: 9,
         data: depth.data.clone(),
+        registration: 0,
     };
     robot
         .publish(now_ns(), model.clone(), 1000.0, colour.clone(), odd_depth)

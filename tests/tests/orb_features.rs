@@ -126,6 +126,7 @@ impl Seq06 {
             height: 480,
             data: frame.depth_units(1000.0),
             depth_scale: 1000.0,
+            registered: true,
         };
         (grey_mat(&frame.grey()), depth)
     }

@@ -52,6 +52,7 @@ impl Rig {
             height,
             data: depth.to_vec(),
             depth_scale: 1000.0,
+            registered: true,
         };
         let stamp = (stamp_s * 1e9).round() as u64;
         self.tracker

@@ -6,6 +6,7 @@ use std::net::SocketAddr;
 use std::path::{Path, PathBuf};
 use thiserror::Error;
 pub use vsgraphs_sdk::zenoh_config::ZenohSettings;
+use vsgraphs_slam::DepthResidual;
 use vsgraphs_vision::aruco::CornerRefinement;
 
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -105,6 +106,18 @@ impl Default for MarkerConfig {
     }
 }
 
+/// How depth enters tracking's and bundle adjustment's reprojection residuals.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Default)]
+#[serde(rename_all = "snake_case")]
+pub enum DepthResidualSetting {
+    /// By each frame's depth registration: the disparity for depth aligned to colour, the
+    /// right-image form for depth that is not.
+    #[default]
+    Auto,
+    Disparity,
+    RightImage,
+}
+
 /// Camera tracking (RGB-D SLAM) per robot.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
@@ -113,6 +126,7 @@ pub struct TrackingConfig {
     pub features: usize,
     pub virtual_baseline_m: f64,
     pub close_depth_baselines: f64,
+    pub depth_residual: DepthResidualSetting,
     pub keyframe_ratio: f64,
     pub local_ba_iterations: usize,
     pub local_ba_threads: usize,
@@ -131,6 +145,11 @@ impl Default for TrackingConfig {
             features: slam.orb.features,
             virtual_baseline_m: slam.virtual_baseline_m,
             close_depth_baselines: slam.close_depth_baselines,
+            depth_residual: match slam.depth_residual {
+                None => DepthResidualSetting::Auto,
+                Some(DepthResidual::Disparity) => DepthResidualSetting::Disparity,
+                Some(DepthResidual::RightImage) => DepthResidualSetting::RightImage,
+            },
             keyframe_ratio: slam.keyframe_ratio,
             local_ba_iterations: slam.local_ba_iterations,
             local_ba_threads: slam.local_ba_threads,
@@ -150,6 +169,11 @@ impl TrackingConfig {
         config.orb.features = self.features;
         config.virtual_baseline_m = self.virtual_baseline_m;
         config.close_depth_baselines = self.close_depth_baselines;
+        config.depth_residual = match self.depth_residual {
+            DepthResidualSetting::Auto => None,
+            DepthResidualSetting::Disparity => Some(DepthResidual::Disparity),
+            DepthResidualSetting::RightImage => Some(DepthResidual::RightImage),
+        };
         config.keyframe_ratio = self.keyframe_ratio;
         config.local_ba_iterations = self.local_ba_iterations;
         config.local_ba_threads = self.local_ba_threads;
@@ -291,6 +315,21 @@ mod tests {
             .unwrap_err()
             .to_string()
             .contains("sometimes"));
+        std::fs::write(&path, "[tracking]\ndepth_residual = \"left_image\"\n").unwrap();
+        let message = Config::load(&path).unwrap_err().to_string();
+        assert!(
+            message.contains("left_image") && message.contains("right_image"),
+            "{message}"
+        );
+        std::fs::write(&path, "[tracking]\ndepth_residual = \"right_image\"\n").unwrap();
+        assert_eq!(
+            Config::load(&path)
+                .unwrap()
+                .tracking
+                .tracker()
+                .depth_residual,
+            Some(DepthResidual::RightImage)
+        );
         std::fs::write(&path, "[tracking]\nkeyframe_ratio = 1.5\n").unwrap();
         assert!(Config::load(&path)
             .unwrap_err()

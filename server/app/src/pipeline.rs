@@ -7,7 +7,7 @@ use std::sync::Arc;
 use std::time::{Duration, Instant};
 use vsgraphs_proto::api::{DistanceSource, MarkerDetection, MarkerPose};
 use vsgraphs_proto::api::{MapView, TrackingState};
-use vsgraphs_proto::{keys, Message, RgbdFrame};
+use vsgraphs_proto::{keys, DepthRegistration, Message, RgbdFrame};
 use vsgraphs_slam::{ExtractedFrame, FrameResult, MarkerSighting, Tracker};
 use vsgraphs_vision::aruco::MarkerDetector;
 use vsgraphs_vision::camera::PinholeCamera;
@@ -253,7 +253,7 @@ impl FrameProcessor {
         let grey = decode::colour_to_grey(colour, camera.width, camera.height)
             .map_err(|e| decode_rejection(e, Reason::ColourDecode, sequence))?;
         let depth_wire = frame.depth.as_ref().expect("checked by parse");
-        let depth = decode::depth(
+        let mut depth = decode::depth(
             depth_wire.encoding,
             &depth_wire.data,
             camera.width,
@@ -261,6 +261,8 @@ impl FrameProcessor {
             frame.depth_scale,
         )
         .map_err(|e| decode_rejection(e, Reason::DepthDecode, sequence))?;
+        // Unknown values (a newer robot) are taken as registered, as unspecified is.
+        depth.registered = depth_wire.registration() != DepthRegistration::Unregistered;
         // Decoding: the protobuf, the colour image and the depth image.
         let decode = started.elapsed();
 

@@ -18,7 +18,7 @@
 //! four at a time with the same formulas (`normal::observations`); this one-at-a-time form
 //! serves the rest, and pose-only optimisation shares its Gauss–Newton terms.
 
-use crate::camera::{Pinhole, MIN_DEPTH};
+use crate::camera::{DepthResidual, Pinhole, VirtualStereo, MIN_DEPTH};
 use crate::factor::{Factor, Kernel};
 use crate::factors::projection::{
     pixel_residual, CameraFromWorld, ProjectionFactor, StereoProjectionFactor,
@@ -33,8 +33,8 @@ pub(crate) struct Reprojection {
     pub pose: VarId,
     pub point: VarId,
     camera: Pinhole,
-    /// `Some(bf)` for RGB-D `(u, v, u_r)`, `None` for `(u, v)`.
-    bf: Option<f64>,
+    /// RGB-D `(u, v, u_r)`, `None` for `(u, v)`.
+    stereo: Option<VirtualStereo>,
     /// Measured pixels; the third is 0 without depth.
     measured: [f64; 3],
     /// `s` of the information `R = s·I`.
@@ -51,7 +51,7 @@ impl Reprojection {
                 pose,
                 point,
                 camera: f.camera,
-                bf: Some(f.bf),
+                stereo: Some(f.stereo),
                 measured: [f.measured.x, f.measured.y, f.measured.z],
                 scale,
             });
@@ -62,7 +62,7 @@ impl Reprojection {
             pose,
             point,
             camera: f.camera,
-            bf: None,
+            stereo: None,
             measured: [f.measured.x, f.measured.y, 0.0],
             scale,
         })
@@ -74,7 +74,7 @@ impl Reprojection {
     fn residual(&self, view: &CameraFromWorld, values: &Values) -> ([f64; 3], Vector3<f64>) {
         let p_c = view.transform(values.at::<Vector3<f64>>(self.point));
         (
-            pixel_residual(&self.camera, self.bf, &self.measured, &p_c),
+            pixel_residual(&self.camera, self.stereo, &self.measured, &p_c),
             p_c,
         )
     }
@@ -89,9 +89,9 @@ impl Reprojection {
         self.scale
     }
 
-    /// `Some(bf)` for RGB-D, `None` for monocular.
-    pub fn bf(&self) -> Option<f64> {
-        self.bf
+    /// The virtual stereo pair of RGB-D, `None` for monocular.
+    pub fn stereo(&self) -> Option<VirtualStereo> {
+        self.stereo
     }
 
     pub fn camera(&self) -> &Pinhole {
@@ -127,7 +127,7 @@ impl Reprojection {
         let s = self.chi2(&r);
         let (cost, weight) = kernel.map_or((s, 1.0), |k| k.evaluate(s));
         let w2 = self.scale * self.scale * weight.max(0.0);
-        let (g, h) = gauss_newton_terms(&self.camera, self.bf, &p, &r, w2);
+        let (g, h) = gauss_newton_terms(&self.camera, self.stereo, &p, &r, w2);
         let [g00, g02, g11, g12, g22] = [g.g00, g.g02, g.g11, g.g12, g.g22];
         let rot = &view.rotation;
         let p = [p.x, p.y, p.z];
@@ -158,8 +158,9 @@ impl Reprojection {
     }
 }
 
-/// `G = w²·DᵀD` of a pinhole residual, `D = ∂(u, v[, u_r])/∂p_c`: symmetric, and `G01 = 0`
-/// because `u` and `u_r` do not depend on `y` nor `v` on `x`.
+/// `G = w²·DᵀD` of a pinhole residual, `D = ∂(u, v[, r_z])/∂p_c` ([`pixel_residual`]):
+/// symmetric, and `G01 = 0` because `u` and the depth's entry do not depend on `y`, nor `v` on
+/// `x`.
 #[derive(Clone, Copy, Debug)]
 pub(crate) struct Gram3 {
     g00: f64,
@@ -170,17 +171,18 @@ pub(crate) struct Gram3 {
 }
 
 /// `G = w²·DᵀD` and `h = w²·Dᵀr` for the residual `r` (its third entry 0 without depth) of a
-/// point `p_c` seen by `camera`; `bf` is `Some` for RGB-D `(u, v, u_r)`.
+/// point `p_c` seen by `camera`; `stereo` is `Some` for RGB-D `(u, v, u_r)`.
 #[inline(always)]
 pub(crate) fn gauss_newton_terms(
     camera: &Pinhole,
-    bf: Option<f64>,
+    stereo: Option<VirtualStereo>,
     p_c: &Vector3<f64>,
     r: &[f64; 3],
     w2: f64,
 ) -> (Gram3, [f64; 3]) {
-    // D's entries: u's row [a, 0, b], v's [0, c, d] and, with depth, u_r's [a, 0, e]; the
-    // depth column is zero where the depth is clamped (as `Pinhole::project_jacobian`).
+    // D's entries: u's row [a, 0, b], v's [0, c, d] and, with depth, the disparity's
+    // [0, 0, e] or the right image's [a, 0, b + e]; the depth column is zero where the depth
+    // is clamped (as `Pinhole::project_jacobian`).
     let clamped = p_c.z < MIN_DEPTH;
     let iz = 1.0 / p_c.z.max(MIN_DEPTH);
     let (a, c) = (camera.fx * iz, camera.fy * iz);
@@ -191,12 +193,19 @@ pub(crate) fn gauss_newton_terms(
     };
     let (mut g00, mut g02, g11, g12, mut g22) = (a * a, a * b, c * c, c * d, b * b + d * d);
     let (mut h0, h1, mut h2) = (a * r[0], c * r[1], b * r[0] + d * r[1]);
-    if let Some(bf) = bf {
-        let e = if clamped { b } else { b + bf * iz * iz };
-        g00 += a * a;
-        g02 += a * e;
+    if let Some(stereo) = stereo {
+        let disparity = if clamped { 0.0 } else { stereo.bf * iz * iz };
+        let e = match stereo.residual {
+            DepthResidual::Disparity => disparity,
+            DepthResidual::RightImage => {
+                let e = if clamped { b } else { b + disparity };
+                g00 += a * a;
+                g02 += a * e;
+                h0 += a * r[2];
+                e
+            }
+        };
         g22 += e * e;
-        h0 += a * r[2];
         h2 += e * r[2];
     }
     let g = Gram3 {
@@ -381,7 +390,10 @@ mod tests {
                 Some(Kernel::Huber(0.1)),
                 Some(Kernel::Cauchy(1.0)),
             ][seed as usize % 4];
-            let stereo = StereoProjectionFactor::new(pose, point, camera, 30.3, measured);
+            let form =
+                [DepthResidual::Disparity, DepthResidual::RightImage][(seed / 4) as usize % 2];
+            let stereo = StereoProjectionFactor::new(pose, point, camera, 30.3, measured)
+                .with_residual(form);
             let mono = ProjectionFactor::new(pose, point, camera, measured.xy());
             let factors: [(Box<dyn Factor>, &dyn Any, usize); 2] = [
                 (Box::new(stereo.clone()), &stereo, 3),

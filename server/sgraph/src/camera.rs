@@ -42,3 +42,50 @@ impl Pinhole {
         Matrix2x3::new(self.fx * iz, 0.0, dz_u, 0.0, self.fy * iz, dz_v)
     }
 }
+
+/// How an RGB-D keypoint's depth enters its reprojection residual, whose first two entries are
+/// always `u − u_m` and `v − v_m`.
+///
+/// Measured on this project's data (BENCHMARKS.md, session 18): registered depth (the
+/// simulator's, like a RealSense aligned to colour) is tracked best by the disparity, whose
+/// error is independent of the pixel's; 7-Scenes' Kinect depth, taken by the infrared camera
+/// beside the colour one and not registered to it, by the right-image form.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub enum DepthResidual {
+    /// `bf/z_m − bf/z`: the depth as a disparity against the measured one. No lever arm, so no
+    /// bias: a one-sided virtual camera turns depth noise into a yaw of one sign (+0.008° per
+    /// pose on seq06, a heading drift of 2–3° over its walk).
+    #[default]
+    Disparity,
+    /// ORB-SLAM's `u − bf/z − u_r,m`: the reprojection into a virtual camera `b` to the right,
+    /// so the pixel's `u` error counts twice.
+    RightImage,
+}
+
+/// An RGB-D camera read as a stereo pair, as ORB-SLAM does: depth `z` gives a virtual
+/// right-image coordinate `u_r = u − bf/z`, and `bf` (the focal length times a virtual
+/// baseline) sets how much depth is trusted against the pixel.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct VirtualStereo {
+    /// Focal length times virtual baseline, pixel·metres (ORB-SLAM's `mbf`).
+    pub bf: f64,
+    pub residual: DepthResidual,
+}
+
+impl VirtualStereo {
+    /// Depth as a disparity (the default form).
+    pub fn disparity(bf: f64) -> Self {
+        Self {
+            bf,
+            residual: DepthResidual::Disparity,
+        }
+    }
+
+    /// Depth as ORB-SLAM's right-image coordinate.
+    pub fn right_image(bf: f64) -> Self {
+        Self {
+            bf,
+            residual: DepthResidual::RightImage,
+        }
+    }
+}

@@ -21,7 +21,7 @@ pub mod solver;
 pub mod testing;
 pub mod values;
 
-pub use camera::Pinhole;
+pub use camera::{DepthResidual, Pinhole, VirtualStereo};
 pub use factor::{Factor, Information, InformationError, Kernel};
 pub use lie::Se3;
 pub use plane::Plane;

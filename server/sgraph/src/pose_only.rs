@@ -13,7 +13,7 @@
 //! [`ProjectionFactor`]: crate::factors::projection::ProjectionFactor
 
 use crate::bundle::{gauss_newton_terms, pose_gradient};
-use crate::camera::Pinhole;
+use crate::camera::{Pinhole, VirtualStereo};
 use crate::factors::projection::{pixel_residual, CameraFromWorld};
 use crate::lie::Se3;
 use nalgebra::{Matrix6, Vector2, Vector3, Vector6};
@@ -74,26 +74,36 @@ pub struct PoseOnlyResult {
 /// camera.
 fn residual(
     camera: &Pinhole,
-    bf: f64,
+    stereo: VirtualStereo,
     view: &CameraFromWorld,
     observation: &PoseObservation,
 ) -> (Vector3<f64>, Vector3<f64>) {
     let p_c = view.transform(&observation.point_in_world);
     let (depth, measured) = match observation.measured {
         Measurement::Mono(m) => (None, [m.x, m.y, 0.0]),
-        Measurement::Stereo(m) => (Some(bf), [m.x, m.y, m.z]),
+        Measurement::Stereo(m) => (Some(stereo), [m.x, m.y, m.z]),
     };
     let r = pixel_residual(camera, depth, &measured, &p_c);
     (Vector3::from(r), p_c)
 }
 
 /// χ² of one observation at a pose.
-pub fn chi2(camera: &Pinhole, bf: f64, world_from_camera: &Se3, o: &PoseObservation) -> f64 {
-    chi2_in(camera, bf, &CameraFromWorld::new(world_from_camera), o)
+pub fn chi2(
+    camera: &Pinhole,
+    stereo: VirtualStereo,
+    world_from_camera: &Se3,
+    o: &PoseObservation,
+) -> f64 {
+    chi2_in(camera, stereo, &CameraFromWorld::new(world_from_camera), o)
 }
 
-fn chi2_in(camera: &Pinhole, bf: f64, view: &CameraFromWorld, o: &PoseObservation) -> f64 {
-    residual(camera, bf, view, o).0.norm_squared() * o.information
+fn chi2_in(
+    camera: &Pinhole,
+    stereo: VirtualStereo,
+    view: &CameraFromWorld,
+    o: &PoseObservation,
+) -> f64 {
+    residual(camera, stereo, view, o).0.norm_squared() * o.information
 }
 
 fn threshold(o: &PoseObservation) -> f64 {
@@ -106,7 +116,7 @@ fn threshold(o: &PoseObservation) -> f64 {
 /// Robust cost of the included observations.
 fn cost(
     camera: &Pinhole,
-    bf: f64,
+    stereo: VirtualStereo,
     pose: &Se3,
     observations: &[PoseObservation],
     included: &[bool],
@@ -118,7 +128,7 @@ fn cost(
         .zip(included)
         .filter(|(_, &inc)| inc)
         .map(|(o, _)| {
-            let s = chi2_in(camera, bf, &view, o);
+            let s = chi2_in(camera, stereo, &view, o);
             let d2 = threshold(o);
             if robust && s > d2 {
                 2.0 * (d2 * s).sqrt() - d2
@@ -134,7 +144,7 @@ fn cost(
 pub fn optimise_pose(
     initial: &Se3,
     camera: &Pinhole,
-    bf: f64,
+    stereo: VirtualStereo,
     observations: &[PoseObservation],
     options: &PoseOnlyOptions,
 ) -> PoseOnlyResult {
@@ -146,7 +156,7 @@ pub fn optimise_pose(
         levenberg_marquardt(
             &mut pose,
             camera,
-            bf,
+            stereo,
             observations,
             &included,
             robust,
@@ -154,7 +164,7 @@ pub fn optimise_pose(
         );
         let view = CameraFromWorld::new(&pose);
         for (o, inc) in observations.iter().zip(included.iter_mut()) {
-            *inc = chi2_in(camera, bf, &view, o) <= threshold(o);
+            *inc = chi2_in(camera, stereo, &view, o) <= threshold(o);
         }
         if included.iter().filter(|&&i| i).count() < 3 {
             break;
@@ -163,7 +173,7 @@ pub fn optimise_pose(
     let mut inlier_chi2 = 0.0;
     let view = CameraFromWorld::new(&pose);
     for (o, inc) in observations.iter().zip(included.iter_mut()) {
-        let s = chi2_in(camera, bf, &view, o);
+        let s = chi2_in(camera, stereo, &view, o);
         *inc = s <= threshold(o);
         if *inc {
             inlier_chi2 += s;
@@ -180,20 +190,20 @@ pub fn optimise_pose(
 fn levenberg_marquardt(
     pose: &mut Se3,
     camera: &Pinhole,
-    bf: f64,
+    stereo: VirtualStereo,
     observations: &[PoseObservation],
     included: &[bool],
     robust: bool,
     options: &PoseOnlyOptions,
 ) {
-    let mut current = cost(camera, bf, pose, observations, included, robust);
+    let mut current = cost(camera, stereo, pose, observations, included, robust);
     let mut lambda = 1e-5;
     for _ in 0..options.iterations_per_round {
         let mut h = Matrix6::<f64>::zeros();
         let mut g = Vector6::<f64>::zeros();
         let view = CameraFromWorld::new(pose);
         for (o, _) in observations.iter().zip(included).filter(|(_, &i)| i) {
-            let (r, p_c) = residual(camera, bf, &view, o);
+            let (r, p_c) = residual(camera, stereo, &view, o);
             let s = r.norm_squared() * o.information;
             let d2 = threshold(o);
             // Huber's weight ρ'(s): 1 inside the threshold, √(d²/s) beyond.
@@ -203,7 +213,7 @@ fn levenberg_marquardt(
                 1.0
             } * o.information;
             // `JᵀJ` and `Jᵀr` from the Jacobian's structure, as bundle adjustment forms them.
-            let depth = matches!(o.measured, Measurement::Stereo(_)).then_some(bf);
+            let depth = matches!(o.measured, Measurement::Stereo(_)).then_some(stereo);
             let (gram, jtr) = gauss_newton_terms(camera, depth, &p_c, &[r.x, r.y, r.z], weight);
             let p = [p_c.x, p_c.y, p_c.z];
             for (c, column) in gram.pose_block(&p).iter().enumerate() {
@@ -227,7 +237,7 @@ fn levenberg_marquardt(
             };
             let step = -chol.solve(&g);
             let candidate = pose.retract(&step);
-            let tried = cost(camera, bf, &candidate, observations, included, robust);
+            let tried = cost(camera, stereo, &candidate, observations, included, robust);
             if tried.is_finite() && tried <= current {
                 *pose = candidate;
                 current = tried;
@@ -319,7 +329,7 @@ mod tests {
         let result = optimise_pose(
             &start,
             &CAMERA,
-            BF,
+            VirtualStereo::disparity(BF),
             &observations,
             &PoseOnlyOptions::default(),
         );
@@ -333,13 +343,19 @@ mod tests {
 
     #[test]
     fn agrees_with_the_sparse_solver_on_the_same_factors() {
+        for stereo in [VirtualStereo::disparity(BF), VirtualStereo::right_image(BF)] {
+            agrees_with_the_sparse_solver(stereo);
+        }
+    }
+
+    fn agrees_with_the_sparse_solver(stereo: VirtualStereo) {
         let truth = truth();
         let observations = scene(&truth, 120, 0);
         let start = truth.retract(&Vector6::new(0.02, 0.01, -0.02, 0.01, 0.0, -0.01));
         let dense = optimise_pose(
             &start,
             &CAMERA,
-            BF,
+            stereo,
             &observations,
             &PoseOnlyOptions {
                 rounds: 1,
@@ -367,7 +383,8 @@ mod tests {
                     .unwrap(),
                 Measurement::Stereo(m) => problem
                     .add(
-                        StereoProjectionFactor::new(pose, p, CAMERA, BF, m),
+                        StereoProjectionFactor::new(pose, p, CAMERA, BF, m)
+                            .with_residual(stereo.residual),
                         Information::isotropic(3, 1.0).unwrap(),
                         None,
                     )
@@ -382,13 +399,19 @@ mod tests {
         .unwrap();
         let sparse = *problem.values().get(pose);
         let difference = sparse.local(&dense.world_from_camera);
-        assert!(difference.norm() < 1e-9, "{difference}");
+        assert!(difference.norm() < 1e-9, "{stereo:?}: {difference}");
     }
 
     #[test]
     fn nothing_to_explain_leaves_the_pose_alone() {
         let start = truth();
-        let result = optimise_pose(&start, &CAMERA, BF, &[], &PoseOnlyOptions::default());
+        let result = optimise_pose(
+            &start,
+            &CAMERA,
+            VirtualStereo::disparity(BF),
+            &[],
+            &PoseOnlyOptions::default(),
+        );
         assert_eq!(result.world_from_camera, start);
         assert_eq!(result.inlier_count, 0);
     }

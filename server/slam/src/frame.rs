@@ -3,7 +3,7 @@
 
 use crate::markers::MarkerSighting;
 use nalgebra::Vector3;
-use vsgraphs_sgraph::Pinhole;
+use vsgraphs_sgraph::{DepthResidual, Pinhole, VirtualStereo};
 use vsgraphs_vision::orb::Extraction;
 
 /// A 256-bit rotated-BRIEF descriptor.
@@ -29,6 +29,8 @@ pub struct Rig {
     pub height: u32,
     /// Focal length times the virtual baseline, pixel·metres (ORB-SLAM's `bf`).
     pub bf: f64,
+    /// How depth enters the reprojection residuals that estimate poses and points.
+    pub depth_residual: DepthResidual,
     /// Points nearer than this are "close": their depth is trusted to create map points at once
     /// (ORB-SLAM's `40 × baseline`).
     pub close_depth: f64,
@@ -37,6 +39,14 @@ pub struct Rig {
 }
 
 impl Rig {
+    /// The camera as a stereo pair, for the optimiser's residuals.
+    pub fn stereo(&self) -> VirtualStereo {
+        VirtualStereo {
+            bf: self.bf,
+            residual: self.depth_residual,
+        }
+    }
+
     /// Scale of pyramid level `level` relative to level 0.
     pub fn scale(&self, level: usize) -> f64 {
         self.scale_factor.powi(level as i32)
@@ -245,6 +255,7 @@ pub(crate) mod tests {
             width: 640,
             height: 480,
             bf: 48.0,
+            depth_residual: DepthResidual::Disparity,
             close_depth: 3.2,
             scale_factor: 1.2,
             levels: 8,

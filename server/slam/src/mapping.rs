@@ -516,7 +516,8 @@ pub fn prepare_local_ba(
                     rig.camera,
                     rig.bf,
                     Vector3::new(keypoint.x, keypoint.y, right),
-                ),
+                )
+                .with_residual(rig.depth_residual),
                 Information::isotropic(3, sigma).expect("positive sigma"),
                 Some(Kernel::Huber(CHI2_3D.sqrt())),
             ),
@@ -617,7 +618,14 @@ pub fn apply_local_ba(
             .inverse()
             .transform_point(&observation.point_in_world)
             .z;
-        if depth <= 0.0 || chi2(&rig.camera, rig.bf, &kf.world_from_camera, &observation) > limit {
+        if depth <= 0.0
+            || chi2(
+                &rig.camera,
+                rig.stereo(),
+                &kf.world_from_camera,
+                &observation,
+            ) > limit
+        {
             map.erase_observation(p, k);
             lost_observations.insert(p);
             outliers += 1;

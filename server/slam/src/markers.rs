@@ -129,7 +129,7 @@ pub fn corner_observations(
         });
         let mean_square = corners
             .iter()
-            .map(|o| chi2(&rig.camera, rig.bf, world_from_camera, o) / o.information)
+            .map(|o| chi2(&rig.camera, rig.stereo(), world_from_camera, o) / o.information)
             .sum::<f64>()
             / corners.len() as f64;
         if mean_square > MARKER_GATE_PX * MARKER_GATE_PX {
@@ -260,7 +260,7 @@ mod tests {
             corner_observations(&map, &[sighting(&second, &marker, 7)], &rig(), &second);
         assert_eq!(observations.len(), 4);
         for o in &observations {
-            assert!(chi2(&rig().camera, rig().bf, &second, o) < 1e-12);
+            assert!(chi2(&rig().camera, rig().stereo(), &second, o) < 1e-12);
         }
         // The same id read on a patch elsewhere in the image (as a misread texture would be):
         // its corners are far from where the landmark projects, so it is left out.

@@ -30,7 +30,7 @@ use thiserror::Error;
 use vsgraphs_sgraph::pose_only::{
     optimise_pose, Measurement, PoseObservation, PoseOnlyOptions, PoseOnlyResult,
 };
-use vsgraphs_sgraph::{Pinhole, Se3};
+use vsgraphs_sgraph::{DepthResidual, Pinhole, Se3};
 use vsgraphs_vision::depth::DepthImage;
 use vsgraphs_vision::opencv::core::Mat;
 use vsgraphs_vision::orb::{OrbExtractor, OrbParams};
@@ -44,6 +44,9 @@ pub struct TrackerConfig {
     pub virtual_baseline_m: f64,
     /// Points nearer than this many baselines are "close" (trusted at once).
     pub close_depth_baselines: f64,
+    /// How depth enters the residuals; `None` chooses by the depth image: the disparity for
+    /// registered depth, the right-image form for unregistered (see [`DepthResidual`]).
+    pub depth_residual: Option<DepthResidual>,
     /// Keypoints with depth a frame needs to start a map.
     pub min_initial_points: usize,
     /// Map-point inliers that make a frame tracked.
@@ -80,6 +83,7 @@ impl Default for TrackerConfig {
             // deserves more (ARCHITECTURE.md, "Tracking"). Close depth stays 3.2 m.
             virtual_baseline_m: 0.32,
             close_depth_baselines: 10.0,
+            depth_residual: None,
             min_initial_points: 300,
             min_inliers: 30,
             keyframe_ratio: 0.5,
@@ -359,12 +363,18 @@ impl Tracker {
         self.lost_since_ns = None;
     }
 
-    fn rig_for(&self, camera: &Pinhole, width: u32, height: u32) -> Rig {
+    fn rig_for(&self, camera: &Pinhole, depth: &DepthImage) -> Rig {
+        let registered = if depth.registered {
+            DepthResidual::Disparity
+        } else {
+            DepthResidual::RightImage
+        };
         Rig {
             camera: *camera,
-            width,
-            height,
+            width: depth.width,
+            height: depth.height,
             bf: camera.fx * self.config.virtual_baseline_m,
+            depth_residual: self.config.depth_residual.unwrap_or(registered),
             close_depth: self.config.close_depth_baselines * self.config.virtual_baseline_m,
             scale_factor: self.config.orb.scale_factor,
             levels: self.config.orb.levels.max(1),
@@ -396,7 +406,7 @@ impl Tracker {
         depth: &DepthImage,
     ) -> Result<ExtractedFrame, TrackError> {
         let started = Instant::now();
-        let rig = self.rig_for(camera, depth.width, depth.height);
+        let rig = self.rig_for(camera, depth);
         let extraction = self.extractor.extract(grey, Some((depth, rig.bf)))?;
         Ok(ExtractedFrame {
             frame: Frame::new(timestamp_ns, &extraction, &rig),
@@ -763,7 +773,7 @@ impl Tracker {
         } = optimise_pose(
             start,
             &rig.camera,
-            rig.bf,
+            rig.stereo(),
             &observations,
             &PoseOnlyOptions::default(),
         );
@@ -1279,6 +1289,33 @@ fn rigid_fit(pairs: &[(Vector3<f64>, Vector3<f64>)]) -> Option<Se3> {
 mod tests {
     use super::*;
     use nalgebra::UnitQuaternion;
+
+    #[test]
+    fn the_depth_residual_follows_the_depth_registration_unless_configured() {
+        let camera = Pinhole::new(585.0, 585.0, 320.0, 240.0);
+        let depth = |registered| DepthImage {
+            width: 640,
+            height: 480,
+            data: vec![0; 640 * 480],
+            depth_scale: 1000.0,
+            registered,
+        };
+        let residual = |setting, registered| {
+            let tracker = Tracker::new(TrackerConfig {
+                depth_residual: setting,
+                ..TrackerConfig::default()
+            })
+            .unwrap();
+            tracker.rig_for(&camera, &depth(registered)).depth_residual
+        };
+        assert_eq!(residual(None, true), DepthResidual::Disparity);
+        assert_eq!(residual(None, false), DepthResidual::RightImage);
+        for chosen in [DepthResidual::Disparity, DepthResidual::RightImage] {
+            for registered in [true, false] {
+                assert_eq!(residual(Some(chosen), registered), chosen);
+            }
+        }
+    }
 
     #[test]
     fn ransac_finds_the_pose_among_outliers() {

@@ -98,6 +98,7 @@ fn vision(c: &mut Criterion) {
         height: 480,
         data: frame.depth_mm.clone(),
         depth_scale: 1000.0,
+        registered: true,
     };
     let estimator = PoseEstimator::new(camera, 0.08).unwrap();
     c.bench_function("marker_pose_with_depth_check", |b| {

@@ -176,5 +176,6 @@ pub fn depth(
         height,
         data: values,
         depth_scale,
+        registered: true,
     })
 }

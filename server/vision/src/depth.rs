@@ -14,6 +14,8 @@ pub struct DepthImage {
     pub height: u32,
     pub data: Vec<u16>,
     pub depth_scale: f64,
+    /// Aligned to the colour image pixel for pixel (see the wire's `DepthRegistration`).
+    pub registered: bool,
 }
 
 impl DepthImage {
@@ -192,6 +194,7 @@ mod tests {
             height: camera.height,
             data,
             depth_scale: 1000.0,
+            registered: true,
         }
     }
 

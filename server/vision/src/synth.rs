@@ -207,6 +207,7 @@ mod tests {
             height: 480,
             data: frame.depth_mm,
             depth_scale: 1000.0,
+            registered: true,
         };
         let estimator = PoseEstimator::new(camera, 0.16).unwrap();
         let estimate = estimator

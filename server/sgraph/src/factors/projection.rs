@@ -1,10 +1,10 @@
-//! Reprojection of map points into keyframes: RGB-D (u, v and the virtual right-image u_r, as
-//! ORB-SLAM does for RGB-D) and monocular (u, v).
+//! Reprojection of map points into keyframes: RGB-D (u, v and the depth as a disparity against
+//! the virtual right-image u_r that ORB-SLAM measures for RGB-D) and monocular (u, v).
 //!
 //! A keyframe variable is `world_from_camera`. Under its right perturbation `T·Exp([ρ; φ])` a
 //! world point seen from the camera, `p_c = Tᵀ·p_w`, moves by `−ρ + [p_c]×φ`.
 
-use crate::camera::{Pinhole, MIN_DEPTH};
+use crate::camera::{DepthResidual, Pinhole, VirtualStereo, MIN_DEPTH};
 use crate::factor::Factor;
 use crate::lie::{hat, Se3};
 use crate::values::{Key, Kind, Values, VarId};
@@ -38,22 +38,31 @@ impl CameraFromWorld {
     }
 }
 
-/// `[u, v, u_r] − measured` for a point `p_c` in the camera, where `u_r = u − bf/z` with
-/// `bf` (RGB-D) and 0 without: the one residual of every reprojection path (the factors here,
-/// `bundle`'s fast path, pose-only tracking).
+/// The residual of a point `p_c` in the camera against a keypoint measured at `(u, v)` with,
+/// for RGB-D (`stereo`), the virtual right-image coordinate `u_r = u − bf/z` of its depth:
+/// `[u − u_m, v − v_m, r_z]`, where `r_z` is the disparity's `bf/z_m − bf/z` or the right
+/// image's `u − bf/z − u_r,m` ([`DepthResidual`]), and 0 without depth. The one residual of
+/// every reprojection path (the factors here, `bundle`'s and the normal equations' fast paths,
+/// pose-only tracking).
 #[inline(always)]
 pub(crate) fn pixel_residual(
     camera: &Pinhole,
-    bf: Option<f64>,
+    stereo: Option<VirtualStereo>,
     measured: &[f64; 3],
     p_c: &Vector3<f64>,
 ) -> [f64; 3] {
     let uv = camera.project(p_c);
-    let u_r = match bf {
-        Some(bf) => uv.x - bf / p_c.z.max(MIN_DEPTH) - measured[2],
+    let depth = match stereo {
+        Some(s) => {
+            let disparity = s.bf / p_c.z.max(MIN_DEPTH);
+            match s.residual {
+                DepthResidual::Disparity => (measured[0] - measured[2]) - disparity,
+                DepthResidual::RightImage => uv.x - disparity - measured[2],
+            }
+        }
         None => 0.0,
     };
-    [uv.x - measured[0], uv.y - measured[1], u_r]
+    [uv.x - measured[0], uv.y - measured[1], depth]
 }
 
 /// `∂p_c/∂δ` for the camera pose: `[−I, [p_c]×]`.
@@ -78,13 +87,14 @@ fn write_jacobian<const M: usize>(
         .copy_from(&(dg * camera_from_world));
 }
 
-/// `r = [u, v, u_r](T⁻¹·p) − measured`: a keypoint with depth. `u_r = u − bf/z`, where `bf`
-/// is the focal length times the virtual stereo baseline (ORB-SLAM's `mbf`).
+/// A keypoint with depth, measured as ORB-SLAM does, `(u, v, u_r)` with `u_r = u − bf/z` (`bf`
+/// the focal length times the virtual stereo baseline, ORB-SLAM's `mbf`); its residual is
+/// [`pixel_residual`]'s, the depth as a disparity unless [`Self::with_residual`] says otherwise.
 #[derive(Clone, Debug)]
 pub struct StereoProjectionFactor {
     keys: [VarId; 2],
     pub camera: Pinhole,
-    pub bf: f64,
+    pub stereo: VirtualStereo,
     /// Measured `(u, v, u_r)`, pixels.
     pub measured: Vector3<f64>,
 }
@@ -100,9 +110,15 @@ impl StereoProjectionFactor {
         Self {
             keys: [world_from_camera.id, point.id],
             camera,
-            bf,
+            stereo: VirtualStereo::disparity(bf),
             measured,
         }
+    }
+
+    /// The same factor with its depth entering as `residual`.
+    pub fn with_residual(mut self, residual: DepthResidual) -> Self {
+        self.stereo.residual = residual;
+        self
     }
 }
 
@@ -132,7 +148,7 @@ impl Factor for StereoProjectionFactor {
         let m = &self.measured;
         residual.copy_from_slice(&pixel_residual(
             &self.camera,
-            Some(self.bf),
+            Some(self.stereo),
             &[m.x, m.y, m.z],
             &p_c,
         ));
@@ -141,9 +157,11 @@ impl Factor for StereoProjectionFactor {
             let d_uv = self.camera.project_jacobian(&p_c);
             let mut dg = nalgebra::Matrix3::zeros();
             dg.fixed_view_mut::<2, 3>(0, 0).copy_from(&d_uv);
-            dg.fixed_view_mut::<1, 3>(2, 0).copy_from(&d_uv.row(0));
+            if self.stereo.residual == DepthResidual::RightImage {
+                dg.fixed_view_mut::<1, 3>(2, 0).copy_from(&d_uv.row(0));
+            }
             if p_c.z >= MIN_DEPTH {
-                dg[(2, 2)] += self.bf / (z * z);
+                dg[(2, 2)] += self.stereo.bf / (z * z);
             }
             write_jacobian::<3>(&mut jac, &dg, &p_c, &view.rotation);
         }
@@ -242,6 +260,15 @@ mod tests {
         }
 
         #[test]
+        fn right_image_jacobians_match_differences(seed in any::<u64>(), depth in prop::sample::select(vec![0.05, 0.5, 3.0, 40.0])) {
+            let (values, pose, point) = scene(seed, depth);
+            let f = StereoProjectionFactor::new(pose, point, d435(), 40.0, Vector3::new(300.0, 200.0, 290.0))
+                .with_residual(DepthResidual::RightImage);
+            let err = jacobian_error(&f, &values);
+            prop_assert!(err < 1e-6, "{err}");
+        }
+
+        #[test]
         fn projection_jacobians_match_differences(seed in any::<u64>(), depth in prop::sample::select(vec![0.05, 0.5, 3.0, 40.0])) {
             let (values, pose, point) = scene(seed, depth);
             let f = ProjectionFactor::new(pose, point, d435(), Vector2::new(10.0, 470.0));
@@ -262,6 +289,43 @@ mod tests {
         let mut r = [1.0; 3];
         f.evaluate(&values, &mut r, None);
         assert!(r.iter().all(|v| v.abs() < 1e-9), "{r:?}");
+    }
+
+    #[test]
+    fn depth_enters_as_a_disparity_or_as_a_right_image_coordinate() {
+        let camera = d435();
+        let mut values = Values::new();
+        let pose = values.add(Se3::identity());
+        let point = values.add(Vector3::new(0.2, -0.1, 2.0));
+        let residual = |measured: Vector3<f64>, form: DepthResidual| {
+            let f = StereoProjectionFactor::new(pose, point, camera, 40.0, measured)
+                .with_residual(form);
+            let mut r = [0.0; 3];
+            f.evaluate(&values, &mut r, None);
+            r
+        };
+        // The keypoint 1 px to the left, its depth unchanged (u_r moves with u): the disparity
+        // sees it in u's entry alone, the right image in its own as well.
+        let shifted = Vector3::new(384.606, 214.4465, 364.606);
+        for (form, third) in [
+            (DepthResidual::Disparity, 0.0),
+            (DepthResidual::RightImage, 1.0),
+        ] {
+            let r = residual(shifted, form);
+            assert!(
+                (r[0] - 1.0).abs() < 1e-9 && r[1].abs() < 1e-9 && (r[2] - third).abs() < 1e-9,
+                "{form:?}: {r:?}"
+            );
+        }
+        // Measured at 2.5 m instead of 2 m (bf/z 16 px instead of 20): only the third entry,
+        // in both forms.
+        for form in [DepthResidual::Disparity, DepthResidual::RightImage] {
+            let r = residual(Vector3::new(385.606, 214.4465, 369.606), form);
+            assert!(
+                r[0].abs() < 1e-9 && r[1].abs() < 1e-9 && (r[2] + 4.0).abs() < 1e-9,
+                "{form:?}: {r:?}"
+            );
+        }
     }
 
     #[test]

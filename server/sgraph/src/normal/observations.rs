@@ -16,7 +16,7 @@
 use super::assemble::Accumulators;
 use super::{Coupling, Share};
 use crate::bundle::{PoseViews, Reprojection};
-use crate::camera::MIN_DEPTH;
+use crate::camera::{DepthResidual, MIN_DEPTH};
 use crate::factor::Kernel;
 #[cfg(target_arch = "x86_64")]
 use crate::four::{avx2_fma, Avx};
@@ -54,12 +54,15 @@ struct Chunk {
     delta: Lanes,
     /// `bf` of an RGB-D observation `(u, v, u_r)`, 0 for a monocular one `(u, v)`.
     bf: Lanes,
-    /// The camera's index in [`Observations::cameras`], with [`RGBD`] set for `(u, v, u_r)`.
+    /// The camera's index in [`Observations::cameras`], with [`RGBD`] set for `(u, v, u_r)` and
+    /// [`RIGHT_IMAGE`] as well when its depth is a right-image residual.
     camera: [u32; LANES],
 }
 
 /// Marks an RGB-D lane in [`Chunk::camera`].
 const RGBD: u32 = 1 << 31;
+/// Marks an RGB-D lane whose depth is [`DepthResidual::RightImage`]'s.
+const RIGHT_IMAGE: u32 = 1 << 30;
 
 /// One point's chunks.
 #[derive(Clone, Debug)]
@@ -361,8 +364,14 @@ impl Chunk {
             Some(Kernel::Huber(delta)) => delta,
             _ => f64::INFINITY,
         };
-        self.bf[l] = fast.bf().unwrap_or(0.0);
-        self.camera[l] = camera | if fast.bf().is_some() { RGBD } else { 0 };
+        let stereo = fast.stereo();
+        self.bf[l] = stereo.map_or(0.0, |s| s.bf);
+        self.camera[l] = camera
+            | match stereo.map(|s| s.residual) {
+                None => 0,
+                Some(DepthResidual::Disparity) => RGBD,
+                Some(DepthResidual::RightImage) => RGBD | RIGHT_IMAGE,
+            };
     }
 
     /// Residuals, costs and robust weights of the four lanes, for the point at `point`.
@@ -406,21 +415,23 @@ impl Chunk {
         let p = rotate(&rot, &d);
         let load = F::from_array;
         let iz = F::splat(1.0) / p[2].max(F::splat(MIN_DEPTH));
-        // Each lane's camera, and 1 for RGB-D, 0 for monocular.
-        let mut k = [[0.0; LANES]; 5];
+        // Each lane's camera, 1 for RGB-D (0 for monocular) and 1 for a right-image residual.
+        let mut k = [[0.0; LANES]; 6];
         for (l, &c) in self.camera.iter().enumerate() {
-            let camera = &cameras[(c & !RGBD) as usize];
+            let camera = &cameras[(c & !(RGBD | RIGHT_IMAGE)) as usize];
             for (k, x) in k.iter_mut().zip(camera) {
                 k[l] = *x;
             }
             k[4][l] = if c & RGBD != 0 { 1.0 } else { 0.0 };
+            k[5][l] = if c & RIGHT_IMAGE != 0 { 1.0 } else { 0.0 };
         }
-        let [fx, fy, cx, cy, stereo] = [
+        let [fx, fy, cx, cy, stereo, right] = [
             F::from_array(k[0]),
             F::from_array(k[1]),
             F::from_array(k[2]),
             F::from_array(k[3]),
             F::from_array(k[4]),
+            F::from_array(k[5]),
         ];
         let u = (fx * p[0]).mul_add(iz, cx);
         let v = (fy * p[1]).mul_add(iz, cy);
@@ -430,7 +441,14 @@ impl Chunk {
             load(self.measured[2]),
         ];
         let bf = load(self.bf);
-        let r = [u - m[0], v - m[1], stereo * ((u - bf * iz) - m[2])];
+        // The third entry as `pixel_residual`'s, in the same order of operations.
+        let disparity = bf * iz;
+        let depth = right.select_gt(
+            F::splat(0.5),
+            (u - disparity) - m[2],
+            (m[0] - m[2]) - disparity,
+        );
+        let r = [u - m[0], v - m[1], stereo * depth];
         let scale2 = load(self.scale2);
         let s = scale2 * r[2].mul_add(r[2], r[1].mul_add(r[1], r[0] * r[0]));
         // Huber: both branches computed and one kept per lane.
@@ -443,6 +461,7 @@ impl Chunk {
             fx,
             fy,
             stereo,
+            right,
             rot,
             p,
             r,
@@ -521,6 +540,8 @@ struct Evaluated<'a, F> {
     fy: F,
     /// 1 for RGB-D, 0 for monocular.
     stereo: F,
+    /// 1 for a right-image residual, else 0.
+    right: F,
     /// Each lane's `R_cw`.
     rot: [[F; 3]; 3],
     /// The points in the camera.
@@ -551,25 +572,28 @@ impl<F: Four> Evaluated<'_, F> {
         let c = self.chunk;
         let load = F::from_array;
         let (p, r, iz) = (&self.p, &self.r, self.iz);
-        // D's entries: u's row [a, 0, b], v's [0, cc, d], u_r's [a, 0, e]; the depth column
-        // is zero where the depth is clamped.
+        // D's entries: u's row [a, 0, b], v's [0, cc, d], the disparity's [0, 0, e] or the right
+        // image's [a, 0, e] with e holding b as well; the depth column is zero where the depth is
+        // clamped. A disparity lane adds zeros where a right-image lane adds its u terms, so
+        // both keep `gauss_newton_terms`' bits.
         let zero = F::splat(0.0);
         let a = self.fx * iz;
         let cc = self.fy * iz;
         let min = F::splat(MIN_DEPTH);
         let b = p[2].select_lt(min, zero, -(a * p[0] * iz));
         let d = p[2].select_lt(min, zero, -(cc * p[1] * iz));
-        let e = p[2].select_lt(min, b, (load(c.bf) * iz).mul_add(iz, b));
+        let lever = self.right * b;
+        let e = p[2].select_lt(min, lever, (load(c.bf) * iz).mul_add(iz, lever));
         let (st, w2) = (self.stereo, self.w2);
-        let sa = st * a;
-        let g00 = a.mul_add(a, sa * a) * w2;
-        let g02 = a.mul_add(b, sa * e) * w2;
+        let ra = self.right * a;
+        let g00 = a.mul_add(a, ra * a) * w2;
+        let g02 = a.mul_add(b, ra * e) * w2;
         let g11 = cc * cc * w2;
         let g12 = cc * d * w2;
         let g22 = b.mul_add(b, d.mul_add(d, st * e * e)) * w2;
         // r's third entry is 0 for a monocular lane.
         let h = [
-            a * (r[0] + r[2]) * w2,
+            a * (r[0] + self.right * r[2]) * w2,
             cc * r[1] * w2,
             b.mul_add(r[0], d.mul_add(r[1], e * r[2])) * w2,
         ];
@@ -666,8 +690,8 @@ mod tests {
     use crate::{Information, Pinhole, Problem};
     use nalgebra::Vector2;
 
-    /// A bundle adjustment with everything the four-lane path must get right: RGB-D and
-    /// monocular observations, Huber kernels and none, two cameras, fixed poses, points behind
+    /// A bundle adjustment with everything the four-lane path must get right: RGB-D (depth as
+    /// a disparity and as a right-image coordinate) and monocular observations, Huber kernels and none, two cameras, fixed poses, points behind
     /// a camera (their depth clamped), residuals in both parts of the Huber kernel, and a
     /// Cauchy factor, which stays on the one-at-a-time path.
     fn varied_problem() -> Problem {
@@ -704,6 +728,13 @@ mod tests {
                 problem
                     .add(stereo, info, Some(Kernel::Cauchy(2.0)))
                     .unwrap();
+            } else {
+                // ORB-SLAM's right-image form, on the four-lane path.
+                let m = nalgebra::Vector3::new(measured.x, measured.y, measured.x - 15.0);
+                let right = StereoProjectionFactor::new(pose, point, other, 25.0, m)
+                    .with_residual(DepthResidual::RightImage);
+                let info = Information::isotropic(3, 1.2).unwrap();
+                problem.add(right, info, kernel).unwrap();
             }
         }
         // A few points behind the first free camera.

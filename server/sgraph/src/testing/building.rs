@@ -4,7 +4,7 @@
 //! alone, plus marker landmarks (the VSLAM layer), plus walls, rooms, corridors and doorways (the
 //! semantic layers), optionally with map points on the walls as bundle adjustment would have.
 
-use super::Rng;
+use super::{rgbd_measurement, Rng};
 use crate::factors::{
     corridor_centre, marker_corners, room_centre, BetweenFactor, CorridorFactor, DoorwayRoomFactor,
     MarkerCornersFactor, MarkerOnWallFactor, PointOnWallFactor, PoseError, RoomFactor,
@@ -454,8 +454,7 @@ pub fn building_scene(config: &BuildingConfig, seed: u64) -> BuildingScene {
     for (w, key, views) in &points {
         for (k, p_c) in views {
             let uv = cam.project(p_c);
-            let measured =
-                Vector3::new(uv.x, uv.y, uv.x - bf / p_c.z) + rng.vector3(config.pixel_sigma);
+            let measured = rgbd_measurement(&uv, bf / p_c.z, &mut rng, config.pixel_sigma);
             problem
                 .add(
                     StereoProjectionFactor::new(keyframes[*k], *key, cam, bf, measured),

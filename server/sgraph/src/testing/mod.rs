@@ -8,7 +8,7 @@ pub use building::{building_scene, BuildingConfig, BuildingScene};
 use crate::factor::Factor;
 use crate::lie::Se3;
 use crate::values::Values;
-use nalgebra::{DMatrix, DMatrixViewMut, DVector, Vector3, Vector6};
+use nalgebra::{DMatrix, DMatrixViewMut, DVector, Vector2, Vector3, Vector6};
 
 /// A file of the shared test data (`../shared/data` beside the repository, or
 /// `VSGRAPHS_TEST_DATA`); `None`, with a message saying why the caller skips, when absent.
@@ -72,6 +72,20 @@ impl Rng {
 pub fn random_vector6(seed: u64) -> Vector6<f64> {
     let mut rng = Rng::new(seed);
     Vector6::from_fn(|_, _| rng.range(-1.0, 1.0))
+}
+
+/// An RGB-D keypoint as a sensor gives it, `(u, v, u_r)`: the pixel and the disparity `bf/z`
+/// each with noise of `sigma` pixels, and `u_r` the noisy `u` less the noisy disparity (not an
+/// independent right-image measurement: an RGB-D camera has no second image).
+pub fn rgbd_measurement(
+    uv: &Vector2<f64>,
+    disparity: f64,
+    rng: &mut Rng,
+    sigma: f64,
+) -> Vector3<f64> {
+    let noise = rng.vector3(sigma);
+    let (u, v) = (uv.x + noise.x, uv.y + noise.y);
+    Vector3::new(u, v, u - (disparity + noise.z))
 }
 
 /// A random pose: translation within ±5 m, any rotation (angle up to π).
@@ -260,8 +274,7 @@ pub fn bundle_scene(config: &BundleConfig, seed: u64) -> BundleScene {
             }
             seen[k] = true;
             count += 1;
-            let measured =
-                Vector3::new(uv.x, uv.y, uv.x - bf / p_c.z) + rng.vector3(config.pixel_sigma);
+            let measured = rgbd_measurement(&uv, bf / p_c.z, &mut rng, config.pixel_sigma);
             problem
                 .add(
                     StereoProjectionFactor::new(keyframes[k], *pk, camera, bf, measured),
