@@ -121,23 +121,8 @@ pub fn corner_observations(
         if marker.side_m != sighting.side_m {
             continue;
         }
-        let in_world = marker.corners_in_world();
-        let corners: [PoseObservation; 4] = std::array::from_fn(|i| PoseObservation {
-            point_in_world: in_world[i],
-            measured: Measurement::Mono(sighting.corners[i]),
-            information: CORNER_INFORMATION,
-        });
-        let mean_square = corners
-            .iter()
-            .map(|o| chi2(&rig.camera, rig.stereo(), world_from_camera, o) / o.information)
-            .sum::<f64>()
-            / corners.len() as f64;
-        if mean_square > MARKER_GATE_PX * MARKER_GATE_PX {
-            tracing::debug!(
-                id = sighting.id,
-                error_px = mean_square.sqrt(),
-                "a marker sighting far from its landmark is left out"
-            );
+        let corners = corner_observations_of(marker, sighting);
+        if !explains(rig, world_from_camera, &corners, sighting.id) {
             continue;
         }
         observations.extend(corners);
@@ -145,16 +130,50 @@ pub fn corner_observations(
     observations
 }
 
-/// Records keyframe `k`'s sightings: a mapped marker gains the observation, an unmapped one
-/// with a detector pose joins the map. Returns the ids of the markers it added.
-pub fn add_sightings(map: &mut Map, k: KeyFrameId) -> Vec<i32> {
+/// The four corners of `sighting` as observations of `marker`'s mapped corners.
+fn corner_observations_of(marker: &MapMarker, sighting: &MarkerSighting) -> [PoseObservation; 4] {
+    let in_world = marker.corners_in_world();
+    std::array::from_fn(|i| PoseObservation {
+        point_in_world: in_world[i],
+        measured: Measurement::Mono(sighting.corners[i]),
+        information: CORNER_INFORMATION,
+    })
+}
+
+/// Whether a camera at `world_from_camera` sees the mapped corners within [`MARKER_GATE_PX`]
+/// (root mean square) of where marker `id` was sighted.
+fn explains(rig: &Rig, world_from_camera: &Se3, corners: &[PoseObservation; 4], id: i32) -> bool {
+    let mean_square = corners
+        .iter()
+        .map(|o| chi2(&rig.camera, rig.stereo(), world_from_camera, o) / o.information)
+        .sum::<f64>()
+        / corners.len() as f64;
+    let explained = mean_square <= MARKER_GATE_PX * MARKER_GATE_PX;
+    if !explained {
+        tracing::debug!(
+            id,
+            error_px = mean_square.sqrt(),
+            "a marker sighting far from its landmark is left out"
+        );
+    }
+    explained
+}
+
+/// Records keyframe `k`'s sightings: a mapped marker gains the observation when the keyframe's
+/// pose explains it (a misread id elsewhere in the image would drag the landmark there in local
+/// BA: seq03's marker 17 ended 6 m off so), an unmapped one with a detector pose joins the map.
+/// Returns the ids of the markers it added.
+pub fn add_sightings(map: &mut Map, k: KeyFrameId, rig: &Rig) -> Vec<i32> {
     let world_from_camera = map.keyframe(k).world_from_camera;
     let sightings = map.keyframe(k).frame.markers.clone();
     let mut added = Vec::new();
     for (index, sighting) in sightings.iter().enumerate() {
         match map.markers.get_mut(&sighting.id) {
             Some(marker) if marker.side_m == sighting.side_m => {
-                marker.observations.push((k, index));
+                let corners = corner_observations_of(marker, sighting);
+                if explains(rig, &world_from_camera, &corners, sighting.id) {
+                    marker.observations.push((k, index));
+                }
             }
             Some(_) => {
                 tracing::debug!(
@@ -249,9 +268,16 @@ mod tests {
         let second = Se3::new(UnitQuaternion::identity(), Vector3::new(-0.2, 0.05, 0.1));
         let mut map = Map::default();
         let a = keyframe_with(&mut map, first, vec![sighting(&first, &marker, 7)]);
-        assert_eq!(add_sightings(&mut map, a), vec![7]);
+        assert_eq!(add_sightings(&mut map, a, &rig()), vec![7]);
         let b = keyframe_with(&mut map, second, vec![sighting(&second, &marker, 7)]);
-        assert!(add_sightings(&mut map, b).is_empty());
+        assert!(add_sightings(&mut map, b, &rig()).is_empty());
+        // A keyframe that reads id 7 on a patch elsewhere: not an observation of the landmark.
+        let mut elsewhere = sighting(&second, &marker, 7);
+        for c in &mut elsewhere.corners {
+            *c += Vector2::new(-150.0, 60.0);
+        }
+        let c = keyframe_with(&mut map, second, vec![elsewhere]);
+        assert!(add_sightings(&mut map, c, &rig()).is_empty());
         let mapped = &map.markers[&7];
         assert_eq!(mapped.observations, vec![(a, 0), (b, 0)]);
         assert!(marker.local(&mapped.world_from_marker).norm() < 1e-12);
@@ -291,7 +317,7 @@ mod tests {
             Se3::identity(),
             vec![sighting(&Se3::identity(), &marker, 3)],
         );
-        add_sightings(&mut map, k);
+        add_sightings(&mut map, k, &rig());
         let seen = [sighting(&pose, &marker, 3)];
         let (id, found) = pose_from_markers(&map, &seen).unwrap();
         assert_eq!(id, 3);

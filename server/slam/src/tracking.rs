@@ -577,7 +577,7 @@ impl Tracker {
                 created += 1;
             }
         }
-        markers::add_sightings(self.map_mut(), keyframe);
+        markers::add_sightings(self.map_mut(), keyframe, rig);
         let kf = self.map().keyframe(keyframe);
         self.last = Some(LastFrame {
             frame: kf.frame.clone(),
@@ -1091,7 +1091,7 @@ impl Tracker {
                 tracing::trace!(keyframe = k.0, ?report, "points triangulated");
                 self.recent_points.extend(created);
             }
-            let added = markers::add_sightings(self.map_mut(), k);
+            let added = markers::add_sightings(self.map_mut(), k, rig);
             if !added.is_empty() {
                 tracing::debug!(?added, keyframe = k.0, "markers mapped");
             }
