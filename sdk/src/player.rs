@@ -99,10 +99,12 @@ struct Loaded {
 }
 
 /// Reads and encodes one frame's files as the player sends them: colour bytes unchanged, depth
-/// in `codec`. Returns the images and the raw depth size in bytes.
+/// in `codec`, marked with the dataset's `registration`. Returns the images and the raw depth
+/// size in bytes.
 pub fn load_frame(
     files: &FrameFiles,
     codec: DepthEncoding,
+    registration: DepthRegistration,
 ) -> Result<(ColourImage, DepthImage, u64), String> {
     let colour_bytes =
         std::fs::read(&files.colour).map_err(|e| format!("{}: {e}", files.colour.display()))?;
@@ -132,15 +134,16 @@ pub fn load_frame(
             DepthImage {
                 encoding: DepthEncoding::Png16 as i32,
                 data: depth_bytes,
-                registration: DepthRegistration::Unspecified as i32,
+                registration: registration as i32,
             },
             raw,
         ));
     }
     let decoded =
         png16::decode(&depth_bytes).map_err(|e| format!("{}: {e}", files.depth.display()))?;
-    let depth = encode::depth(&decoded.data, decoded.width, decoded.height, codec)
+    let mut depth = encode::depth(&decoded.data, decoded.width, decoded.height, codec)
         .map_err(|e| format!("{}: {e}", files.depth.display()))?;
+    depth.set_registration(registration);
     Ok((colour, depth, decoded.data.len() as u64 * 2))
 }
 
@@ -161,6 +164,7 @@ pub async fn play(
     let (sender, mut receiver) = mpsc::channel::<Loaded>(4);
     let frames = dataset.frames.clone();
     let codec = options.depth_codec;
+    let registration = dataset.depth_registration;
     let loops = options.loops;
     let limit = total;
     let period_ns = frames
@@ -182,7 +186,7 @@ pub async fn play(
                     if limit.is_some_and(|l| sent >= l) {
                         return;
                     }
-                    let result = load_frame(files, codec);
+                    let result = load_frame(files, codec, registration);
                     let timestamp_ns = loop_offset + files.timestamp_ns - frames[0].timestamp_ns;
                     let loaded = Loaded {
                         timestamp_ns,
@@ -221,8 +225,7 @@ pub async fn play(
         }
         attempted += 1;
         match loaded.result {
-            Ok((colour, mut depth, raw_depth)) => {
-                depth.set_registration(dataset.depth_registration);
+            Ok((colour, depth, raw_depth)) => {
                 summary.depth_bytes += depth.data.len() as u64;
                 summary.depth_raw_bytes += raw_depth;
                 let (_, size) = robot

@@ -92,14 +92,13 @@ pub fn run(
 ) -> anyhow::Result<(OfflineSummary, Trajectories)> {
     let total = limit.map_or(dataset.frames.len(), |l| l.min(dataset.frames.len()));
     let frames = dataset.frames.iter().take(total).map(|files| {
-        load_frame(files, DepthEncoding::Rvl).map(|(colour, mut depth, _)| {
-            depth.set_registration(dataset.depth_registration);
-            OfflineFrame {
+        load_frame(files, DepthEncoding::Rvl, dataset.depth_registration).map(
+            |(colour, depth, _)| OfflineFrame {
                 timestamp_ns: files.timestamp_ns,
                 colour,
                 depth,
-            }
-        })
+            },
+        )
     });
     let source = FrameSource {
         camera: &dataset.camera,

@@ -364,7 +364,7 @@ impl Tracker {
     }
 
     fn rig_for(&self, camera: &Pinhole, depth: &DepthImage) -> Rig {
-        let registered = if depth.registered {
+        let by_registration = if depth.registered {
             DepthResidual::Disparity
         } else {
             DepthResidual::RightImage
@@ -374,7 +374,7 @@ impl Tracker {
             width: depth.width,
             height: depth.height,
             bf: camera.fx * self.config.virtual_baseline_m,
-            depth_residual: self.config.depth_residual.unwrap_or(registered),
+            depth_residual: self.config.depth_residual.unwrap_or(by_registration),
             close_depth: self.config.close_depth_baselines * self.config.virtual_baseline_m,
             scale_factor: self.config.orb.scale_factor,
             levels: self.config.orb.levels.max(1),
