@@ -9,10 +9,10 @@
 //! - statistics are over the per-pose errors; `std` is the population standard deviation and
 //!   the median of an even count is the mean of the middle two.
 
-use crate::trajectory::Trajectory;
 use nalgebra::{Isometry3, Matrix3, Rotation3, UnitQuaternion, Vector3};
 use serde::Serialize;
 use thiserror::Error;
+use vsgraphs_datasets::Trajectory;
 
 #[derive(Debug, Error, PartialEq)]
 pub enum MetricsError {

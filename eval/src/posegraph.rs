@@ -3,9 +3,9 @@
 use serde::Serialize;
 use std::path::Path;
 use std::time::{Duration, Instant};
-use vsgraphs_sgraph::factors::pose::PoseError;
-use vsgraphs_sgraph::g2o::PoseGraph;
-use vsgraphs_sgraph::{Options, Solver};
+use vsgraphs_optim::factors::pose::PoseError;
+use vsgraphs_optim::g2o::PoseGraph;
+use vsgraphs_optim::{Options, Solver};
 
 #[derive(Debug, Serialize)]
 pub struct IterationRow {

@@ -2,9 +2,9 @@
 //! or as JSON.
 
 use crate::metrics::{ape, match_and_align, rpe, Alignment, Compare, Relation, Stats};
-use crate::trajectory::Trajectory;
 use serde::Serialize;
 use std::path::Path;
+use vsgraphs_datasets::Trajectory;
 
 /// What to score.
 #[derive(Clone, Copy, Debug, Serialize)]

@@ -1,11 +1,13 @@
 //! Wire formats of vsgraphs: the protobuf messages robots publish, the zenoh key expressions they
-//! publish on, the depth codecs (RVL, 16-bit PNG), and the JSON types of the REST API (shared by
-//! the server and the SDK's client so the two cannot drift apart).
+//! publish on, the image codecs (RVL and 16-bit PNG depth, and [`encode`], raw buffers to every
+//! wire encoding), the JSON types of the REST API (shared by the server and the SDK's client so
+//! the two cannot drift apart) and the building-model JSON ([`model`]).
 //!
 //! This crate is shared by robots and the server, so it stays small and pure Rust: no OpenCV, no
 //! zenoh, no async runtime.
 
 pub mod api;
+pub mod encode;
 pub mod keys;
 pub mod model;
 pub mod png16;

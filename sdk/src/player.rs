@@ -4,16 +4,13 @@
 //! and codec work never delays the network side. Timestamps are shifted so the first frame is
 //! stamped "now" (relative timing kept), which makes the server's latency figures meaningful.
 
-use crate::dataset::{Dataset, FrameFiles};
-use crate::encode;
 use crate::robot::{now_ns, Robot, RobotError};
 use std::path::PathBuf;
 use std::time::{Duration, Instant};
 use thiserror::Error;
 use tokio::sync::mpsc;
-use vsgraphs_proto::{
-    png16, ColourEncoding, ColourImage, DepthEncoding, DepthImage, DepthRegistration, PixelFormat,
-};
+use vsgraphs_datasets::{load_frame, Dataset, FrameFiles};
+use vsgraphs_proto::{ColourImage, DepthEncoding, DepthImage};
 
 /// How fast to play.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -96,55 +93,6 @@ struct Loaded {
     timestamp_ns: u64,
     result: Result<(ColourImage, DepthImage, u64), String>,
     files: FrameFiles,
-}
-
-/// Reads and encodes one frame's files as the player sends them: colour bytes unchanged, depth
-/// in `codec`, marked with the dataset's `registration`. Returns the images and the raw depth
-/// size in bytes.
-pub fn load_frame(
-    files: &FrameFiles,
-    codec: DepthEncoding,
-    registration: DepthRegistration,
-) -> Result<(ColourImage, DepthImage, u64), String> {
-    let colour_bytes =
-        std::fs::read(&files.colour).map_err(|e| format!("{}: {e}", files.colour.display()))?;
-    let encoding = match files.colour.extension().and_then(|e| e.to_str()) {
-        Some("jpg" | "jpeg") => ColourEncoding::Jpeg,
-        Some("png") => ColourEncoding::Png,
-        other => {
-            return Err(format!(
-                "{}: unknown colour file type {other:?}",
-                files.colour.display()
-            ))
-        }
-    };
-    let colour = ColourImage {
-        encoding: encoding as i32,
-        pixel_format: PixelFormat::Rgb8 as i32,
-        data: colour_bytes,
-    };
-    let depth_bytes =
-        std::fs::read(&files.depth).map_err(|e| format!("{}: {e}", files.depth.display()))?;
-    if codec == DepthEncoding::Png16 {
-        let raw = png16::decode(&depth_bytes)
-            .map(|d| d.data.len() as u64 * 2)
-            .unwrap_or(0);
-        return Ok((
-            colour,
-            DepthImage {
-                encoding: DepthEncoding::Png16 as i32,
-                data: depth_bytes,
-                registration: registration as i32,
-            },
-            raw,
-        ));
-    }
-    let decoded =
-        png16::decode(&depth_bytes).map_err(|e| format!("{}: {e}", files.depth.display()))?;
-    let mut depth = encode::depth(&decoded.data, decoded.width, decoded.height, codec)
-        .map_err(|e| format!("{}: {e}", files.depth.display()))?;
-    depth.set_registration(registration);
-    Ok((colour, depth, decoded.data.len() as u64 * 2))
 }
 
 /// Plays `dataset` through `robot`. `progress(sent, total)` is called after every frame

@@ -6,22 +6,18 @@
 //! (`Walk::trajectory(start_ns as f64 * 1e-9, frames_sent)`) and the server's trajectory share
 //! one clock.
 
-use crate::encode::{self, EncodeError};
 use crate::player::Rate;
 use crate::robot::{now_ns, Robot, RobotError};
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 use thiserror::Error;
 use tokio::sync::mpsc;
-use vsgraphs_proto::{
-    CameraModel, ColourImage, DepthEncoding, DepthImage, DepthRegistration, PixelFormat,
-};
+use vsgraphs_proto::encode::EncodeError;
+use vsgraphs_proto::{ColourImage, DepthEncoding, DepthImage};
 use vsgraphs_sim::sequence::render_frame;
 use vsgraphs_sim::walk::Walk;
-use vsgraphs_sim::{Frame as SimFrame, Renderer};
-
-/// Depth units per metre on the wire (millimetres).
-pub const DEPTH_SCALE: f64 = 1000.0;
+pub use vsgraphs_sim::wire::{camera_model, encode_frame, DEPTH_SCALE};
+use vsgraphs_sim::Renderer;
 
 #[derive(Debug, Clone)]
 pub struct SimOptions {
@@ -76,44 +72,6 @@ pub enum SimError {
     Robot(#[from] RobotError),
     #[error("encoding a rendered frame: {0}")]
     Encode(#[from] EncodeError),
-}
-
-/// The camera model the renderer draws with, as the wire carries it.
-pub fn camera_model(renderer: &Renderer) -> CameraModel {
-    let c = &renderer.options().camera;
-    CameraModel {
-        width: c.width,
-        height: c.height,
-        fx: c.fx,
-        fy: c.fy,
-        cx: c.cx,
-        cy: c.cy,
-        distortion: vec![],
-    }
-}
-
-/// A rendered frame as a robot sends it: JPEG colour, depth in [`DEPTH_SCALE`] units.
-pub fn encode_frame(
-    frame: &SimFrame,
-    jpeg_quality: u8,
-    depth_codec: DepthEncoding,
-) -> Result<(ColourImage, DepthImage), EncodeError> {
-    let colour = encode::colour_jpeg(
-        &frame.rgb,
-        frame.width,
-        frame.height,
-        PixelFormat::Rgb8,
-        jpeg_quality,
-    )?;
-    let mut depth = encode::depth(
-        &frame.depth_units(DEPTH_SCALE),
-        frame.width,
-        frame.height,
-        depth_codec,
-    )?;
-    // Rendered from the colour camera's own viewpoint.
-    depth.set_registration(DepthRegistration::Registered);
-    Ok((colour, depth))
 }
 
 struct Encoded {

@@ -2,7 +2,6 @@
 //! `cargo run -p vsgraphs-sim --example aruco_table > sim/src/aruco/bits.rs`.
 //! The simulator carries the bits itself so that robots (the SDK) need no OpenCV.
 
-use opencv::prelude::*;
 use vsgraphs_vision::dictionary::MarkerDictionary;
 
 fn main() -> anyhow::Result<()> {
@@ -29,7 +28,7 @@ fn main() -> anyhow::Result<()> {
             let mut code = 0u64;
             for row in 0..size {
                 for col in 0..size {
-                    let white = *image.at_2d::<u8>(row + 1, col + 1)? > 127;
+                    let white = image.get((col + 1) as u32, (row + 1) as u32).unwrap_or(0) > 127;
                     code = code << 1 | u64::from(white);
                 }
             }

@@ -8,7 +8,7 @@
 use crate::plan::{Door, FloorPlan, PlanError, SpaceKind};
 use nalgebra::{Isometry3, Matrix3, Rotation3, Translation3, UnitQuaternion, Vector3};
 use serde::Serialize;
-use vsgraphs_sgraph::Plane;
+use vsgraphs_optim::Plane;
 
 /// One side of a wall, facing into its space: the plane `x[axis] = at`, normal `facing` along
 /// `axis`, spanning `from..to` along the other floor axis.

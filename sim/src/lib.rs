@@ -1,7 +1,7 @@
 //! Simulated buildings whose walls and door frames carry ArUco markers: the floor plan format,
 //! the ground truth derived from a plan (markers, walls, doorways, room and corridor centres),
 //! the semantic dictionary in the reference's v1 JSON, built-in scenarios, and an RGB-D
-//! renderer with a depth-sensor model.
+//! renderer with a depth-sensor model, whose frames [`wire`] encodes as a robot sends them.
 
 pub mod aruco;
 pub mod building;
@@ -14,6 +14,7 @@ mod scene;
 pub mod sequence;
 mod texture;
 pub mod walk;
+pub mod wire;
 
 pub use building::Building;
 pub use plan::{FloorPlan, PlanError};

@@ -14,7 +14,7 @@ use crate::random::Random;
 use nalgebra::{Isometry3, Matrix3, Rotation3, Translation3, UnitQuaternion, Vector2, Vector3};
 use serde::{Deserialize, Serialize};
 use thiserror::Error;
-use vsgraphs_eval::trajectory::Trajectory;
+use vsgraphs_datasets::Trajectory;
 
 /// How a robot goes through one space.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]

@@ -2,7 +2,7 @@
 //! into their spaces, centres agree with the S-Graph's centre formulas, and the v1 dictionary
 //! has the reference's shape.
 use nalgebra::Vector3;
-use vsgraphs_sgraph::factors::room::{corridor_centre, room_centre};
+use vsgraphs_optim::factors::room::{corridor_centre, room_centre};
 use vsgraphs_sim::plan::SpaceKind;
 use vsgraphs_sim::scenarios::{scenario, NAMES};
 use vsgraphs_sim::{Building, FloorPlan, PlanError};
@@ -150,7 +150,7 @@ fn check_dictionary(name: &str, b: &Building) {
 
 #[test]
 fn real_v1_files_have_the_keys_we_write() {
-    let Some(dir) = vsgraphs_sgraph::testing::shared_data("../reference/env_database/v1") else {
+    let Some(dir) = vsgraphs_optim::testing::shared_data("../reference/env_database/v1") else {
         return;
     };
     let text = std::fs::read_to_string(dir.join("ulms_seq01_aerolab.json")).unwrap();

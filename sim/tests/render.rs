@@ -2,7 +2,6 @@
 //! ray–plane distance within the sensor model, and the bits are OpenCV's.
 
 use nalgebra::{Point3, Vector3};
-use opencv::prelude::*;
 use vsgraphs_sim::aruco::Dictionary;
 use vsgraphs_sim::scenarios::scenario;
 use vsgraphs_sim::walk::looking_at;
@@ -12,6 +11,7 @@ use vsgraphs_vision::camera::PinholeCamera;
 use vsgraphs_vision::depth::DepthImage;
 use vsgraphs_vision::dictionary::MarkerDictionary;
 use vsgraphs_vision::pose::PoseEstimator;
+use vsgraphs_vision::GreyImage;
 
 #[test]
 fn marker_bits_are_opencvs() {
@@ -26,7 +26,7 @@ fn marker_bits_are_opencvs() {
                 let bits = ours.marker(id as u32).unwrap();
                 for row in 0..size + 2 {
                     for col in 0..size + 2 {
-                        let white = *image.at_2d::<u8>(row, col).unwrap() > 127;
+                        let white = image.get(col as u32, row as u32).unwrap() > 127;
                         assert_eq!(
                             bits.white(row as usize, col as usize),
                             white,
@@ -69,10 +69,7 @@ fn a_marker_rendered_at_one_metre_is_found_within_1cm_and_1deg() {
             let world_from_camera = looking_at(eye, aim);
             let frame = renderer.render(k as u64, 0.0, &[world_from_camera]);
             let grey = frame.grey();
-            let image = Mat::new_rows_cols_with_data(480, 640, grey.as_slice())
-                .unwrap()
-                .try_clone()
-                .unwrap();
+            let image = GreyImage::from_pixels(640, 480, &grey).unwrap();
             let detections = detector.detect(&image).unwrap();
             let found: Vec<_> = detections
                 .iter()
@@ -300,10 +297,7 @@ fn orb_counts(name: &str) -> Vec<usize> {
     for i in (0..walk.times.len()).step_by(40) {
         let frame = renderer.render(i as u64, walk.times[i], &[walk.world_from_camera[i]]);
         let grey = frame.grey();
-        let image = Mat::new_rows_cols_with_data(480, 640, grey.as_slice())
-            .unwrap()
-            .try_clone()
-            .unwrap();
+        let image = GreyImage::from_pixels(640, 480, &grey).unwrap();
         counts.push(extractor.extract(&image, None).unwrap().features.len());
     }
     counts
@@ -338,10 +332,7 @@ fn the_detector_finds_the_markers_in_view_and_nothing_else() {
                 let pose = walk.world_from_camera[i];
                 let frame = renderer.render(i as u64, walk.times[i], &[pose]);
                 let grey = frame.grey();
-                let image = Mat::new_rows_cols_with_data(480, 640, grey.as_slice())
-                    .unwrap()
-                    .try_clone()
-                    .unwrap();
+                let image = GreyImage::from_pixels(640, 480, &grey).unwrap();
                 let detected: Vec<i32> = detector
                     .detect(&image)
                     .unwrap()

@@ -100,9 +100,14 @@ pub fn d435() -> PinholeCamera {
 
 /// A rendered frame encoded as a robot would send it: JPEG colour, RVL depth in millimetres.
 pub fn encode_rendered(camera: &PinholeCamera, frame: &RenderedFrame) -> (ColourImage, DepthImage) {
-    let grey = frame.grey_bytes().unwrap();
-    let colour =
-        encode::colour_jpeg(&grey, camera.width, camera.height, PixelFormat::Mono8, 95).unwrap();
+    let colour = encode::colour_jpeg(
+        frame.grey_bytes(),
+        camera.width,
+        camera.height,
+        PixelFormat::Mono8,
+        95,
+    )
+    .unwrap();
     let depth = encode::depth(
         &frame.depth_mm,
         camera.width,

@@ -21,8 +21,8 @@ async fn live_tracking_matches_the_offline_run() {
     let dataset = dataset::open(&dir.join("7scenes-a")).unwrap();
     let offline_dataset = dataset.clone();
     let (summary, trajectories) = tokio::task::spawn_blocking(move || {
-        vsgraphs_server::offline::run(
-            &Config::default(),
+        vsgraphs_pipeline::offline::run(
+            &Config::default().pipeline(),
             &offline_dataset,
             Some(FRAMES),
             |_, _| {},

@@ -2,6 +2,7 @@
 //! on real and simulated frames, and matching across frames where the true motion says.
 
 use nalgebra::{Isometry3, Vector3};
+use opencv::boxed_ref::BoxedRef;
 use opencv::core::{KeyPoint, Mat, Vector};
 use opencv::features2d::{ORB_ScoreType, ORB};
 use opencv::prelude::*;
@@ -11,6 +12,7 @@ use vsgraphs_sim::{Building, Camera, Renderer};
 use vsgraphs_tests::*;
 use vsgraphs_vision::depth::DepthImage;
 use vsgraphs_vision::orb::{Extraction, OrbExtractor, OrbParams};
+use vsgraphs_vision::GreyImage;
 
 /// Fraction of the 10 × 8 grid cells of a 640×480 image holding at least one point.
 fn coverage(points: impl Iterator<Item = (f32, f32)>) -> f64 {
@@ -25,31 +27,33 @@ fn coverage(points: impl Iterator<Item = (f32, f32)>) -> f64 {
 }
 
 /// 7-Scenes colour frame `i` of the shared data, as grey.
-fn seven_scenes_grey(data: &std::path::Path, i: usize) -> Mat {
-    let path = data.join(format!("7scenes-a/frame-{i:06}.color.jpg"));
-    let image =
-        opencv::imgcodecs::imread(path.to_str().unwrap(), opencv::imgcodecs::IMREAD_GRAYSCALE)
-            .unwrap();
-    assert!(!image.empty(), "{}", path.display());
-    image
+fn seven_scenes_grey(data: &std::path::Path, i: usize) -> GreyImage {
+    GreyImage::read(&data.join(format!("7scenes-a/frame-{i:06}.color.jpg"))).unwrap()
 }
 
-fn grey_mat(grey: &[u8]) -> Mat {
-    Mat::new_rows_cols_with_data(480, 640, grey)
-        .unwrap()
-        .try_clone()
+fn grey_image(grey: &[u8]) -> GreyImage {
+    GreyImage::from_pixels(640, 480, grey).unwrap()
+}
+
+/// The same pixels as OpenCV's matrix, for OpenCV's own ORB.
+fn opencv_view(image: &GreyImage) -> BoxedRef<'_, Mat> {
+    Mat::new_rows_cols_with_data(image.height() as i32, image.width() as i32, image.pixels())
         .unwrap()
 }
 
 /// Coverage of ours and of OpenCV's ORB (same budget and pyramid) on one image.
-fn both_coverages(image: &Mat) -> (f64, f64, usize) {
+fn both_coverages(image: &GreyImage) -> (f64, f64, usize) {
     let mut ours = OrbExtractor::new(OrbParams::default()).unwrap();
     let extraction = ours.extract(image, None).unwrap();
     let mut opencv =
         ORB::create(1000, 1.2, 8, 19, 0, 2, ORB_ScoreType::HARRIS_SCORE, 31, 20).unwrap();
     let mut keypoints = Vector::<KeyPoint>::new();
     opencv
-        .detect(image, &mut keypoints, &opencv::core::no_array())
+        .detect(
+            &opencv_view(image),
+            &mut keypoints,
+            &opencv::core::no_array(),
+        )
         .unwrap();
     (
         coverage(extraction.features.iter().map(|f| (f.x, f.y))),
@@ -72,7 +76,7 @@ fn features_cover_the_image_better_than_opencv_orb() {
     let walk = scenario.walks().unwrap().remove(0);
     for i in [0, 900, 1800, 2700] {
         let frame = renderer.render(i as u64, walk.times[i], &[walk.world_from_camera[i]]);
-        images.push((format!("seq03 frame {i}"), grey_mat(&frame.grey())));
+        images.push((format!("seq03 frame {i}"), grey_image(&frame.grey())));
     }
     let (mut sum_ours, mut sum_theirs) = (0.0, 0.0);
     for (name, image) in &images {
@@ -118,7 +122,7 @@ impl Seq06 {
     }
 
     /// Frame `i`: grey, and depth in millimetres.
-    fn frame(&self, i: usize) -> (Mat, DepthImage) {
+    fn frame(&self, i: usize) -> (GreyImage, DepthImage) {
         let pose = self.walk.world_from_camera[i];
         let frame = self.renderer.render(i as u64, self.walk.times[i], &[pose]);
         let depth = DepthImage {
@@ -128,13 +132,13 @@ impl Seq06 {
             depth_scale: 1000.0,
             registered: true,
         };
-        (grey_mat(&frame.grey()), depth)
+        (grey_image(&frame.grey()), depth)
     }
 
     fn extract(
         &self,
         extractor: &mut OrbExtractor,
-        (grey, depth): &(Mat, DepthImage),
+        (grey, depth): &(GreyImage, DepthImage),
     ) -> Extraction {
         extractor
             .extract(grey, Some((depth, self.focal_baseline)))
@@ -289,7 +293,7 @@ fn descriptors_are_opencvs_at_every_level() {
     let building = Building::from_plan(&scenario.plan).unwrap();
     let renderer = Renderer::new(&scenario.plan, &building, scenario.render.clone(), 1);
     let walk = scenario.walks().unwrap().remove(0);
-    let mut images = vec![grey_mat(
+    let mut images = vec![grey_image(
         &renderer
             .render(900, walk.times[900], &[walk.world_from_camera[900]])
             .grey(),
@@ -303,7 +307,7 @@ fn descriptors_are_opencvs_at_every_level() {
     for image in &images {
         let extraction = ours.extract(image, None).unwrap();
         let mut keypoints = Vector::<KeyPoint>::new();
-        let (width, height) = (f64::from(image.cols()), f64::from(image.rows()));
+        let (width, height) = (f64::from(image.width()), f64::from(image.height()));
         for f in &extraction.features {
             let nominal = 1.2f64.powi(f.octave);
             // OpenCV finds a keypoint's level pixel as its coordinates over the nominal scale;
@@ -329,7 +333,9 @@ fn descriptors_are_opencvs_at_every_level() {
             );
         }
         let mut theirs = Mat::default();
-        opencv.compute(image, &mut keypoints, &mut theirs).unwrap();
+        opencv
+            .compute(&opencv_view(image), &mut keypoints, &mut theirs)
+            .unwrap();
         assert_eq!(keypoints.len(), extraction.features.len());
         let mut per_level = [0usize; 8];
         for (i, (f, d)) in extraction

@@ -2,18 +2,17 @@
 //! ground truth that nobody here computed with the tracker.
 
 use nalgebra::{Isometry3, Matrix3, Rotation3, Translation3, UnitQuaternion};
-use opencv::core::Mat;
-use opencv::prelude::*;
 use std::time::Instant;
+use vsgraphs_datasets::Trajectory;
 use vsgraphs_eval::metrics::{ape, match_and_align, Compare, Relation};
-use vsgraphs_eval::trajectory::Trajectory;
-use vsgraphs_eval_cli::scenario::{self, ScenarioOptions, ScenarioRun};
-use vsgraphs_server::config::Config;
-use vsgraphs_sgraph::{Pinhole, Se3};
+use vsgraphs_eval::scenario::{self, ScenarioOptions, ScenarioRun};
+use vsgraphs_optim::{Pinhole, Se3};
+use vsgraphs_pipeline::PipelineConfig;
 use vsgraphs_sim::scenarios::Scenario;
 use vsgraphs_slam::{Tracker, TrackerConfig, TrackingState};
 use vsgraphs_tests::*;
 use vsgraphs_vision::depth::DepthImage;
+use vsgraphs_vision::GreyImage;
 
 fn isometry(pose: &Se3) -> Isometry3<f64> {
     Isometry3::from_parts(Translation3::from(pose.translation), pose.rotation)
@@ -34,7 +33,7 @@ fn ate(reference: &Trajectory, estimate: &Trajectory) -> f64 {
 }
 
 fn run(
-    frames: impl Iterator<Item = (f64, Mat, DepthImage)>,
+    frames: impl Iterator<Item = (f64, GreyImage, DepthImage)>,
     camera: Pinhole,
     config: TrackerConfig,
 ) -> Run {
@@ -114,22 +113,13 @@ fn seven_scenes(config: TrackerConfig, max_ate: f64) {
     }
     let load = |(stamp, i): (f64, usize)| {
         let colour = dir.join(format!("frame-{i:06}.color.jpg"));
-        let grey = opencv::imgcodecs::imread(
-            colour.to_str().unwrap(),
-            opencv::imgcodecs::IMREAD_GRAYSCALE,
-        )
-        .unwrap();
+        let grey = GreyImage::read(&colour).unwrap();
         let depth_path = dir.join(format!("frame-{i:06}.depth.png"));
-        let depth = opencv::imgcodecs::imread(
-            depth_path.to_str().unwrap(),
-            opencv::imgcodecs::IMREAD_ANYDEPTH,
-        )
-        .unwrap();
-        let data: Vec<u16> = depth.data_typed::<u16>().unwrap().to_vec();
+        let depth = vsgraphs_proto::png16::decode(&std::fs::read(depth_path).unwrap()).unwrap();
         let depth = DepthImage {
-            width: depth.cols() as u32,
-            height: depth.rows() as u32,
-            data,
+            width: depth.width,
+            height: depth.height,
+            data: depth.data,
             depth_scale: 1000.0,
             registered: false,
         };
@@ -154,7 +144,7 @@ fn seven_scenes(config: TrackerConfig, max_ate: f64) {
 fn simulated(name: &str) -> ScenarioRun {
     let scenario = Scenario::builtin(name).unwrap();
     let run = scenario::run(
-        &Config::default(),
+        &PipelineConfig::default(),
         &scenario,
         &ScenarioOptions::default(),
         |_, _| {},

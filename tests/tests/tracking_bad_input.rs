@@ -2,14 +2,13 @@
 //! session restart. Each says what happened through the tracker's state and events, nothing
 //! panics, and the robot relocalises in its map when good frames come back.
 
-use opencv::core::Mat;
-use opencv::prelude::*;
-use vsgraphs_sgraph::Pinhole;
+use vsgraphs_optim::Pinhole;
 use vsgraphs_sim::scenarios::Scenario;
 use vsgraphs_sim::sequence::render_frame;
 use vsgraphs_sim::{Building, Renderer};
 use vsgraphs_slam::{FrameResult, Tracker, TrackerConfig, TrackingState};
 use vsgraphs_vision::depth::DepthImage;
+use vsgraphs_vision::GreyImage;
 
 /// A frame in memory: stamp (s), grey image, depth (mm).
 type RawFrame = (f64, Vec<u8>, Vec<u16>);
@@ -43,10 +42,7 @@ struct Rig {
 impl Rig {
     fn track(&mut self, stamp_s: f64, grey: &[u8], depth: &[u16]) -> FrameResult {
         let (width, height) = self.size;
-        let image = Mat::new_rows_cols_with_data(height as i32, width as i32, grey)
-            .unwrap()
-            .try_clone()
-            .unwrap();
+        let image = GreyImage::from_pixels(width, height, grey).unwrap();
         let depth = DepthImage {
             width,
             height,

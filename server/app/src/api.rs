@@ -232,7 +232,7 @@ async fn get_trajectory(
     if tum {
         return Ok((
             [("content-type", "text/plain; charset=utf-8")],
-            crate::offline::tum_text(&poses),
+            vsgraphs_pipeline::offline::tum_text(&poses),
         )
             .into_response());
     }
@@ -256,7 +256,7 @@ async fn list_maps(
     let maps = robot
         .maps()
         .iter()
-        .map(|view| crate::model::trimmed(view, 0, false))
+        .map(|view| vsgraphs_pipeline::model::trimmed(view, 0, false))
         .collect();
     Ok(Json(maps))
 }
@@ -305,7 +305,9 @@ async fn get_map(
 ) -> Result<Json<MapView>, Failure> {
     let view = find_map(&registry, &robot_id, map)?;
     let at_most = query.max_points.unwrap_or(DEFAULT_MAP_POINTS);
-    Ok(Json(crate::model::trimmed(&view, at_most, true)))
+    Ok(Json(vsgraphs_pipeline::model::trimmed(
+        &view, at_most, true,
+    )))
 }
 
 /// One map as a building model (the JSON `vsgraphs-eval semantics` scores): its markers so far.
@@ -326,7 +328,7 @@ async fn get_map_model(
     Path((robot_id, map)): Path<(String, u32)>,
 ) -> Result<Json<vsgraphs_proto::model::BuildingModel>, Failure> {
     let view = find_map(&registry, &robot_id, map)?;
-    Ok(Json(crate::model::building_model(&view)))
+    Ok(Json(vsgraphs_pipeline::model::building_model(&view)))
 }
 
 fn unknown_robot(robot_id: &str) -> Failure {

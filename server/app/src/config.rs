@@ -1,13 +1,15 @@
 //! The server's one configuration file (TOML). `config/vsgraphs.toml` documents every field with
-//! its default; a test keeps that file and [`Config::default`] equal.
+//! its default; a test keeps that file and [`Config::default`] equal. The `[markers]` and
+//! `[tracking]` sections are the frame pipeline's ([`vsgraphs_pipeline::config`]).
 
 use serde::{Deserialize, Serialize};
 use std::net::SocketAddr;
 use std::path::{Path, PathBuf};
 use thiserror::Error;
+pub use vsgraphs_pipeline::config::{
+    DepthResidualSetting, MarkerConfig, PipelineConfig, TrackingConfig,
+};
 pub use vsgraphs_sdk::zenoh_config::ZenohSettings;
-use vsgraphs_slam::DepthResidual;
-use vsgraphs_vision::aruco::CornerRefinement;
 
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
@@ -73,116 +75,8 @@ impl Default for IngestConfig {
             queue_capacity: 4,
             drop_policy: DropPolicy::DropOldest,
             max_robots: 64,
-            max_frame_bytes: 32 << 20,
+            max_frame_bytes: vsgraphs_pipeline::config::DEFAULT_MAX_FRAME_BYTES,
         }
-    }
-}
-
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-#[serde(default, deny_unknown_fields)]
-pub struct MarkerConfig {
-    pub dictionary: String,
-    pub dictionary_file: PathBuf,
-    pub side_m: f64,
-    pub corner_refinement: CornerRefinement,
-    pub depth_refinement: bool,
-    pub depth_agreement: f64,
-    /// Detect markers on a second thread while the worker extracts the frame's features
-    /// (false: one after the other on the worker, for one-core robots and one-core timing).
-    pub beside_features: bool,
-}
-
-impl Default for MarkerConfig {
-    fn default() -> Self {
-        Self {
-            dictionary: "DICT_4X4_100".into(),
-            dictionary_file: PathBuf::new(),
-            side_m: 0.08,
-            corner_refinement: CornerRefinement::Subpixel,
-            depth_refinement: true,
-            depth_agreement: 0.15,
-            beside_features: true,
-        }
-    }
-}
-
-/// How depth enters tracking's and bundle adjustment's reprojection residuals.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Default)]
-#[serde(rename_all = "snake_case")]
-pub enum DepthResidualSetting {
-    /// By each frame's depth registration: the disparity for depth aligned to colour, the
-    /// right-image form for depth that is not.
-    #[default]
-    Auto,
-    Disparity,
-    RightImage,
-}
-
-/// Camera tracking (RGB-D SLAM) per robot.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-#[serde(default, deny_unknown_fields)]
-pub struct TrackingConfig {
-    pub enabled: bool,
-    pub features: usize,
-    pub virtual_baseline_m: f64,
-    pub close_depth_baselines: f64,
-    pub depth_residual: DepthResidualSetting,
-    pub keyframe_ratio: f64,
-    pub local_ba_iterations: usize,
-    pub local_ba_threads: usize,
-    pub new_map_after_s: f64,
-    pub marker_landmarks: bool,
-    pub background_ba: bool,
-    pub triangulate_points: bool,
-    pub cull_keyframes: bool,
-}
-
-impl Default for TrackingConfig {
-    fn default() -> Self {
-        let slam = vsgraphs_slam::TrackerConfig::default();
-        Self {
-            enabled: true,
-            features: slam.orb.features,
-            virtual_baseline_m: slam.virtual_baseline_m,
-            close_depth_baselines: slam.close_depth_baselines,
-            depth_residual: match slam.depth_residual {
-                None => DepthResidualSetting::Auto,
-                Some(DepthResidual::Disparity) => DepthResidualSetting::Disparity,
-                Some(DepthResidual::RightImage) => DepthResidualSetting::RightImage,
-            },
-            keyframe_ratio: slam.keyframe_ratio,
-            local_ba_iterations: slam.local_ba_iterations,
-            local_ba_threads: slam.local_ba_threads,
-            new_map_after_s: slam.new_map_after_s,
-            marker_landmarks: slam.marker_landmarks,
-            background_ba: slam.background_ba,
-            triangulate_points: slam.triangulate_points,
-            cull_keyframes: slam.cull_keyframes,
-        }
-    }
-}
-
-impl TrackingConfig {
-    /// The tracker's settings: these fields over its defaults.
-    pub fn tracker(&self) -> vsgraphs_slam::TrackerConfig {
-        let mut config = vsgraphs_slam::TrackerConfig::default();
-        config.orb.features = self.features;
-        config.virtual_baseline_m = self.virtual_baseline_m;
-        config.close_depth_baselines = self.close_depth_baselines;
-        config.depth_residual = match self.depth_residual {
-            DepthResidualSetting::Auto => None,
-            DepthResidualSetting::Disparity => Some(DepthResidual::Disparity),
-            DepthResidualSetting::RightImage => Some(DepthResidual::RightImage),
-        };
-        config.keyframe_ratio = self.keyframe_ratio;
-        config.local_ba_iterations = self.local_ba_iterations;
-        config.local_ba_threads = self.local_ba_threads;
-        config.new_map_after_s = self.new_map_after_s;
-        config.marker_landmarks = self.marker_landmarks;
-        config.background_ba = self.background_ba;
-        config.triangulate_points = self.triangulate_points;
-        config.cull_keyframes = self.cull_keyframes;
-        config
     }
 }
 
@@ -220,6 +114,14 @@ impl Config {
         Ok(config)
     }
 
+    /// The frame pipeline's sections.
+    pub fn pipeline(&self) -> PipelineConfig {
+        PipelineConfig {
+            markers: self.markers.clone(),
+            tracking: self.tracking.clone(),
+        }
+    }
+
     /// Checks values that parse but cannot work.
     pub fn validate(&self) -> Result<(), ConfigError> {
         let invalid = |field, message: String| Err(ConfigError::Invalid { field, message });
@@ -232,55 +134,12 @@ impl Config {
         if self.ingest.max_frame_bytes < 1024 {
             return invalid("ingest.max_frame_bytes", "must be at least 1024".into());
         }
-        if !(self.markers.side_m.is_finite() && self.markers.side_m > 0.0) {
-            return invalid(
-                "markers.side_m",
-                format!("{} is not a positive length in metres", self.markers.side_m),
-            );
-        }
-        if !(self.markers.depth_agreement.is_finite() && self.markers.depth_agreement > 0.0) {
-            return invalid(
-                "markers.depth_agreement",
-                "must be a positive fraction".into(),
-            );
-        }
-        let t = &self.tracking;
-        if !(50..=10_000).contains(&t.features) {
-            return invalid(
-                "tracking.features",
-                format!("{} is not within 50..=10000", t.features),
-            );
-        }
-        if !(1..=64).contains(&t.local_ba_threads) {
-            return invalid(
-                "tracking.local_ba_threads",
-                format!("{} is not within 1..=64", t.local_ba_threads),
-            );
-        }
-        if !(t.virtual_baseline_m.is_finite() && t.virtual_baseline_m > 0.0) {
-            return invalid(
-                "tracking.virtual_baseline_m",
-                "must be a positive length in metres".into(),
-            );
-        }
-        if !(t.close_depth_baselines.is_finite() && t.close_depth_baselines > 0.0) {
-            return invalid(
-                "tracking.close_depth_baselines",
-                "must be a positive number of baselines".into(),
-            );
-        }
-        if !(t.keyframe_ratio > 0.0 && t.keyframe_ratio < 1.0) {
-            return invalid(
-                "tracking.keyframe_ratio",
-                "must be a fraction between 0 and 1".into(),
-            );
-        }
-        if !(t.new_map_after_s.is_finite() && t.new_map_after_s >= 0.0) {
-            return invalid(
-                "tracking.new_map_after_s",
-                "must be zero or more seconds".into(),
-            );
-        }
+        self.pipeline()
+            .validate()
+            .map_err(|e| ConfigError::Invalid {
+                field: e.field,
+                message: e.message,
+            })?;
         if let Err(e) = self.zenoh.to_config() {
             return invalid("zenoh", e.to_string());
         }
@@ -323,12 +182,8 @@ mod tests {
         );
         std::fs::write(&path, "[tracking]\ndepth_residual = \"right_image\"\n").unwrap();
         assert_eq!(
-            Config::load(&path)
-                .unwrap()
-                .tracking
-                .tracker()
-                .depth_residual,
-            Some(DepthResidual::RightImage)
+            Config::load(&path).unwrap().tracking.depth_residual,
+            DepthResidualSetting::RightImage
         );
         std::fs::write(&path, "[tracking]\nkeyframe_ratio = 1.5\n").unwrap();
         assert!(Config::load(&path)

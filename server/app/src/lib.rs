@@ -1,6 +1,6 @@
-//! The vsgraphs mapping server: receives robots' RGB-D frames over zenoh, validates and decodes
-//! them, detects ArUco markers, tracks robot presence, and serves it all through a REST API and
-//! a web page.
+//! The vsgraphs mapping server: receives robots' RGB-D frames over zenoh, runs each through the
+//! frame pipeline ([`vsgraphs_pipeline`]) on the robot's worker thread, tracks robot presence,
+//! and serves it all through a REST API and a web page.
 //!
 //! Threads: zenoh's own for the network, tokio for HTTP, and one named worker thread per robot
 //! for CPU work. See ARCHITECTURE.md.
@@ -9,9 +9,6 @@ pub mod api;
 pub mod config;
 pub mod detect;
 pub mod ingest;
-pub mod model;
-pub mod offline;
-pub mod pipeline;
 pub mod robots;
 pub mod simulate;
 pub mod web;
@@ -40,7 +37,7 @@ impl Server {
     pub async fn start(config: Config) -> anyhow::Result<Self> {
         config.validate()?;
         // Fail now, not in the first robot's worker, if the marker dictionary cannot load.
-        pipeline::FrameProcessor::new(
+        vsgraphs_pipeline::FrameProcessor::new(
             &config.markers,
             &config.tracking,
             config.ingest.max_frame_bytes,

@@ -140,8 +140,8 @@ fn effective_config(cli: &Cli) -> anyhow::Result<Config> {
     Ok(config)
 }
 
-fn print_offline(s: &vsgraphs_server::offline::OfflineSummary) {
-    use vsgraphs_server::offline::{median, quantile};
+fn print_offline(s: &vsgraphs_pipeline::offline::OfflineSummary) {
+    use vsgraphs_pipeline::offline::{median, quantile};
     println!(
         "{} frames in {:.1} s: {} tracked, {} not tracked, {} skipped",
         s.frames,
@@ -223,7 +223,7 @@ async fn main() -> anyhow::Result<()> {
             camera,
             refinement,
         } => {
-            let dictionary = vsgraphs_server::pipeline::load_dictionary(&config.markers)?;
+            let dictionary = vsgraphs_pipeline::config::load_dictionary(&config.markers)?;
             let side = cli
                 .overrides
                 .marker_side
@@ -241,12 +241,13 @@ async fn main() -> anyhow::Result<()> {
             model,
             limit,
         } => {
-            let dataset = vsgraphs_sdk::dataset::open(&dataset)?;
+            let dataset = vsgraphs_datasets::open(&dataset)?;
             for warning in &dataset.warnings {
                 eprintln!("note: {warning}");
             }
+            let pipeline = config.pipeline();
             let (summary, poses) = tokio::task::spawn_blocking(move || {
-                vsgraphs_server::offline::run(&config, &dataset, limit, |done, total| {
+                vsgraphs_pipeline::offline::run(&pipeline, &dataset, limit, |done, total| {
                     if done % 100 == 0 || done == total {
                         eprintln!("{done}/{total} frames");
                     }
@@ -265,7 +266,7 @@ async fn main() -> anyhow::Result<()> {
                     .filter(|p| Some(p.map) == map)
                     .copied()
                     .collect();
-                vsgraphs_server::offline::write_tum(&path, &kept)
+                vsgraphs_pipeline::offline::write_tum(&path, &kept)
                     .with_context(|| format!("writing {}", path.display()))?;
                 println!(
                     "{what}: {} poses of map {} in {}",
@@ -280,7 +281,7 @@ async fn main() -> anyhow::Result<()> {
                     .last()
                     .context("no map was started, so there is no model to write")?;
                 let json =
-                    serde_json::to_string_pretty(&vsgraphs_server::model::building_model(view))?;
+                    serde_json::to_string_pretty(&vsgraphs_pipeline::model::building_model(view))?;
                 std::fs::write(&path, json)
                     .with_context(|| format!("writing {}", path.display()))?;
                 println!(
@@ -297,7 +298,7 @@ async fn main() -> anyhow::Result<()> {
             connect,
             rate,
         } => {
-            let dictionary = vsgraphs_server::pipeline::load_dictionary(&config.markers)?;
+            let dictionary = vsgraphs_pipeline::config::load_dictionary(&config.markers)?;
             let robot = vsgraphs_sdk::Robot::connect(vsgraphs_sdk::RobotConfig::connecting_to(
                 &robot_id, connect,
             ))

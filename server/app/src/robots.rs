@@ -4,11 +4,11 @@
 //! read by the API. Locks are held for a few field updates only, never across I/O or `.await`.
 
 use crate::ingest::queue::FrameQueue;
-use crate::pipeline::FrameTracking;
 use std::collections::{BTreeMap, HashMap, VecDeque};
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex, RwLock};
 use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
+use vsgraphs_pipeline::FrameTracking;
 use vsgraphs_proto::api::{
     self, FrameCounters, FrameDetections, MapView, Presence, RobotStatus, Timing, TrackingStatus,
     TrajectoryPose,
@@ -198,7 +198,7 @@ impl RobotEntry {
                 match result.world_from_camera {
                     Some(pose) => {
                         status.frames_tracked += 1;
-                        let pose = crate::model::api_pose(&pose);
+                        let pose = vsgraphs_pipeline::model::api_pose(&pose);
                         status.world_from_camera = Some(pose);
                         status.pose_timestamp_ns = Some(timestamp_ns);
                         state.trajectory.push((
@@ -235,12 +235,12 @@ impl RobotEntry {
         trajectory
             .iter()
             .map(|(pose, anchor)| {
-                let refined = anchor
-                    .as_ref()
-                    .and_then(|a| crate::model::anchored_in_view(maps.get(&pose.map)?, a));
+                let refined = anchor.as_ref().and_then(|a| {
+                    vsgraphs_pipeline::model::anchored_in_view(maps.get(&pose.map)?, a)
+                });
                 match refined {
                     Some(p) => TrajectoryPose {
-                        world_from_camera: crate::model::api_pose(&p),
+                        world_from_camera: vsgraphs_pipeline::model::api_pose(&p),
                         ..*pose
                     },
                     None => *pose,

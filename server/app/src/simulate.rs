@@ -55,8 +55,7 @@ pub async fn simulate_markers(
         let camera_for_render = camera.clone();
         let (colour, depth) = tokio::task::spawn_blocking(move || -> anyhow::Result<_> {
             let frame = render(&camera_for_render, &dictionary, &markers, 1.25)?;
-            let colour =
-                encode::colour_jpeg(&frame.grey_bytes()?, 640, 480, PixelFormat::Mono8, 90)?;
+            let colour = encode::colour_jpeg(frame.grey_bytes(), 640, 480, PixelFormat::Mono8, 90)?;
             let depth = encode::depth(&frame.depth_mm, 640, 480, DepthEncoding::Rvl)?;
             Ok((colour, depth))
         })

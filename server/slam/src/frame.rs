@@ -3,7 +3,7 @@
 
 use crate::markers::MarkerSighting;
 use nalgebra::Vector3;
-use vsgraphs_sgraph::{DepthResidual, Pinhole, VirtualStereo};
+use vsgraphs_optim::{DepthResidual, Pinhole, VirtualStereo};
 use vsgraphs_vision::orb::Extraction;
 
 /// A 256-bit rotated-BRIEF descriptor.

@@ -21,4 +21,4 @@ pub use markers::{MapMarker, MarkerSighting};
 pub use tracking::{
     ExtractedFrame, FrameResult, StageTimes, TrackError, Tracker, TrackerConfig, TrackingState,
 };
-pub use vsgraphs_sgraph::{DepthResidual, Pinhole, Se3};
+pub use vsgraphs_optim::{DepthResidual, Pinhole, Se3};

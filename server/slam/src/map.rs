@@ -6,7 +6,7 @@ use crate::frame::{hamming, Descriptor, Frame, Rig};
 use crate::markers::MapMarker;
 use nalgebra::Vector3;
 use std::collections::BTreeMap;
-use vsgraphs_sgraph::Se3;
+use vsgraphs_optim::Se3;
 
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, PartialOrd, Ord)]
 pub struct KeyFrameId(pub u32);

@@ -11,10 +11,10 @@ use crate::map::{KeyFrameId, Map, MapPointId};
 use crate::markers::CORNER_INFORMATION;
 use nalgebra::{Vector2, Vector3};
 use std::collections::{HashMap, HashSet};
-use vsgraphs_sgraph::factors::marker::MarkerCornersFactor;
-use vsgraphs_sgraph::factors::projection::{ProjectionFactor, StereoProjectionFactor};
-use vsgraphs_sgraph::pose_only::{chi2, Measurement, PoseObservation, CHI2_2D, CHI2_3D};
-use vsgraphs_sgraph::{Information, Kernel, Key, Options, Problem, Se3, Solver, Values};
+use vsgraphs_optim::factors::marker::MarkerCornersFactor;
+use vsgraphs_optim::factors::projection::{ProjectionFactor, StereoProjectionFactor};
+use vsgraphs_optim::pose_only::{chi2, Measurement, PoseObservation, CHI2_2D, CHI2_3D};
+use vsgraphs_optim::{Information, Kernel, Key, Options, Problem, Se3, Solver, Values};
 
 /// Fewest new points a keyframe creates from depth, nearest first, even beyond `close_depth`.
 pub const MIN_NEW_POINTS: usize = 100;
@@ -346,7 +346,7 @@ pub fn local_bundle_adjustment(
     rig: &Rig,
     keyframe: KeyFrameId,
     iterations: usize,
-) -> Result<LocalBaReport, vsgraphs_sgraph::SolveError> {
+) -> Result<LocalBaReport, vsgraphs_optim::SolveError> {
     let solved = prepare_local_ba(map, rig, keyframe, iterations).solve();
     apply_local_ba(map, rig, solved)
 }
@@ -374,7 +374,7 @@ struct BaParts {
 
 /// A solved (or failed) local BA, to apply to the map it was built from.
 pub struct SolvedLocalBa {
-    result: Result<(Values, vsgraphs_sgraph::Report), vsgraphs_sgraph::SolveError>,
+    result: Result<(Values, vsgraphs_optim::Report), vsgraphs_optim::SolveError>,
     parts: BaParts,
     /// Time the solve took, wherever it ran.
     pub solve_time: std::time::Duration,
@@ -567,7 +567,7 @@ pub fn apply_local_ba(
     map: &mut Map,
     rig: &Rig,
     solved: SolvedLocalBa,
-) -> Result<LocalBaReport, vsgraphs_sgraph::SolveError> {
+) -> Result<LocalBaReport, vsgraphs_optim::SolveError> {
     let (values, report) = solved.result?;
     let BaParts {
         window,

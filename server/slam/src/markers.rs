@@ -8,9 +8,9 @@
 use crate::frame::Rig;
 use crate::map::{KeyFrameId, Map};
 use nalgebra::Vector2;
-use vsgraphs_sgraph::factors::marker::marker_corners;
-use vsgraphs_sgraph::pose_only::{chi2, Measurement, PoseObservation};
-use vsgraphs_sgraph::Se3;
+use vsgraphs_optim::factors::marker::marker_corners;
+use vsgraphs_optim::pose_only::{chi2, Measurement, PoseObservation};
+use vsgraphs_optim::Se3;
 use vsgraphs_vision::aruco::Detection;
 use vsgraphs_vision::pose::MarkerPoseEstimate;
 

@@ -5,7 +5,7 @@
 
 use crate::frame::{hamming, Descriptor, Frame, Rig};
 use nalgebra::Vector3;
-use vsgraphs_sgraph::Se3;
+use vsgraphs_optim::Se3;
 
 /// Largest descriptor distance accepted when a window bounds the search (ORB-SLAM's `TH_HIGH`).
 pub const TH_HIGH: u32 = 100;

@@ -27,14 +27,14 @@ use std::collections::{HashMap, HashSet};
 use std::sync::mpsc;
 use std::time::{Duration, Instant};
 use thiserror::Error;
-use vsgraphs_sgraph::pose_only::{
+use vsgraphs_optim::pose_only::{
     optimise_pose, Measurement, PoseObservation, PoseOnlyOptions, PoseOnlyResult,
 };
-use vsgraphs_sgraph::{DepthResidual, Pinhole, Se3};
+use vsgraphs_optim::{DepthResidual, Pinhole, Se3};
 use vsgraphs_vision::depth::DepthImage;
-use vsgraphs_vision::opencv::core::Mat;
 use vsgraphs_vision::orb::{OrbExtractor, OrbParams};
 use vsgraphs_vision::CvError;
+use vsgraphs_vision::GreyImage;
 
 /// Tracking settings; defaults are ORB-SLAM's for RGB-D where it has one.
 #[derive(Clone, Debug, PartialEq)]
@@ -176,7 +176,7 @@ pub enum TrackError {
     #[error(transparent)]
     Features(#[from] CvError),
     #[error("local bundle adjustment failed: {0}")]
-    LocalBa(#[from] vsgraphs_sgraph::SolveError),
+    LocalBa(#[from] vsgraphs_optim::SolveError),
     #[error("the local bundle adjustment thread stopped")]
     BaThreadStopped,
 }
@@ -388,7 +388,7 @@ impl Tracker {
         &mut self,
         timestamp_ns: u64,
         camera: &Pinhole,
-        grey: &Mat,
+        grey: &GreyImage,
         depth: &DepthImage,
         sightings: Vec<MarkerSighting>,
     ) -> Result<FrameResult, TrackError> {
@@ -402,7 +402,7 @@ impl Tracker {
         &mut self,
         timestamp_ns: u64,
         camera: &Pinhole,
-        grey: &Mat,
+        grey: &GreyImage,
         depth: &DepthImage,
     ) -> Result<ExtractedFrame, TrackError> {
         let started = Instant::now();

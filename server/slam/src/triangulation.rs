@@ -13,8 +13,8 @@ use crate::frame::{hamming, Rig};
 use crate::map::{KeyFrameId, Map, MapPointId};
 use crate::matcher::{turned_alike, TH_LOW};
 use nalgebra::{Matrix3, Vector3};
-use vsgraphs_sgraph::pose_only::{CHI2_2D, CHI2_3D};
-use vsgraphs_sgraph::Se3;
+use vsgraphs_optim::pose_only::{CHI2_2D, CHI2_3D};
+use vsgraphs_optim::Se3;
 
 /// Covisible keyframes a new keyframe is matched with (ORB-SLAM: 10 with depth).
 pub const TRIANGULATION_NEIGHBOURS: usize = 10;

@@ -2,6 +2,9 @@
 //! detection with our sub-pixel refinement, and marker pose with the depth check.
 use criterion::{criterion_group, criterion_main, Criterion};
 use nalgebra::{Isometry3, Translation3, UnitQuaternion};
+use opencv::core::{no_array, KeyPoint, Mat, Vector};
+use opencv::features2d::{ORB_ScoreType, ORB};
+use opencv::prelude::*;
 use std::path::PathBuf;
 use vsgraphs_proto::{ColourEncoding, ColourImage, DepthEncoding, PixelFormat};
 use vsgraphs_vision::aruco::{CornerRefinement, MarkerDetector};
@@ -9,9 +12,6 @@ use vsgraphs_vision::camera::PinholeCamera;
 use vsgraphs_vision::decode;
 use vsgraphs_vision::depth::DepthImage;
 use vsgraphs_vision::dictionary::MarkerDictionary;
-use vsgraphs_vision::opencv::core::{no_array, KeyPoint, Mat, Vector};
-use vsgraphs_vision::opencv::features2d::{ORB_ScoreType, ORB};
-use vsgraphs_vision::opencv::prelude::*;
 use vsgraphs_vision::orb::{OrbExtractor, OrbParams};
 use vsgraphs_vision::pose::PoseEstimator;
 use vsgraphs_vision::synth::{render, PlacedMarker};
@@ -47,14 +47,21 @@ fn vision(c: &mut Criterion) {
         c.bench_function("orb_slam_extract_1000_640x480", |b| {
             b.iter(|| extractor.extract(&grey, Some((&depth, 30.0))).unwrap())
         });
+        let grey_mat = Mat::new_rows_cols_with_data(480, 640, grey.pixels()).unwrap();
         let mut orb =
             ORB::create(1000, 1.2, 8, 19, 0, 2, ORB_ScoreType::HARRIS_SCORE, 31, 20).unwrap();
         c.bench_function("opencv_orb_detect_and_compute_1000_640x480", |b| {
             b.iter(|| {
                 let mut keypoints = Vector::<KeyPoint>::new();
                 let mut descriptors = Mat::default();
-                orb.detect_and_compute(&grey, &no_array(), &mut keypoints, &mut descriptors, false)
-                    .unwrap();
+                orb.detect_and_compute(
+                    &grey_mat,
+                    &no_array(),
+                    &mut keypoints,
+                    &mut descriptors,
+                    false,
+                )
+                .unwrap();
                 descriptors
             })
         });

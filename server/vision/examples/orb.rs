@@ -1,9 +1,8 @@
 //! ORB extraction on one image, for profiles: `orb IMAGE [RUNS]` extracts RUNS times (1 by
 //! default) on one OpenCV thread, so that `valgrind --tool=callgrind` counts the same
 //! instructions on every run (wall time on a shared machine does not repeat).
-use vsgraphs_vision::opencv::prelude::*;
-use vsgraphs_vision::opencv::{core, imgcodecs};
 use vsgraphs_vision::orb::{OrbExtractor, OrbParams};
+use vsgraphs_vision::GreyImage;
 
 fn main() {
     let mut args = std::env::args().skip(1);
@@ -11,9 +10,8 @@ fn main() {
     let runs: usize = args
         .next()
         .map_or(1, |r| r.parse().expect("RUNS is a number"));
-    core::set_num_threads(1).expect("OpenCV threads");
-    let grey = imgcodecs::imread(&path, imgcodecs::IMREAD_GRAYSCALE).expect("readable image");
-    assert!(!grey.empty(), "{path}: not an image");
+    opencv::core::set_num_threads(1).expect("OpenCV threads");
+    let grey = GreyImage::read(path.as_ref()).expect("readable image");
     let mut extractor = OrbExtractor::new(OrbParams::default()).expect("extractor");
     let mut features = 0;
     for _ in 0..runs {

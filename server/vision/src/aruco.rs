@@ -1,6 +1,7 @@
 //! ArUco marker detection.
 
 use crate::dictionary::MarkerDictionary;
+use crate::image::GreyImage;
 use crate::CvError;
 use opencv::aruco::DetectorParameters;
 use opencv::core::{Mat, Point2f, Ptr, Vector};
@@ -68,8 +69,9 @@ impl MarkerDetector {
         &self.dictionary
     }
 
-    /// Finds the markers in a greyscale (or BGR) image.
-    pub fn detect(&mut self, image: &Mat) -> Result<Vec<Detection>, CvError> {
+    /// Finds the markers in a grey image.
+    pub fn detect(&mut self, image: &GreyImage) -> Result<Vec<Detection>, CvError> {
+        let image = image.mat();
         self.corners.clear();
         self.ids.clear();
         self.rejected.clear();

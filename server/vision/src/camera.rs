@@ -1,6 +1,11 @@
-//! Pinhole camera model with OpenCV's distortion coefficients, checked on construction.
+//! Pinhole camera model with OpenCV's distortion coefficients, checked on construction, and
+//! read from OpenCV's calibration files.
 
+use crate::CvError;
 use nalgebra::{Point2, Vector3};
+use opencv::core::{FileStorage, FileStorage_Mode, Mat, CV_64F};
+use opencv::prelude::*;
+use std::path::Path;
 use thiserror::Error;
 use vsgraphs_proto::CameraModel;
 
@@ -19,6 +24,19 @@ pub enum CameraError {
     BadDistortion(Vec<f64>),
 }
 
+/// Why a camera file could not be used.
+#[derive(Debug, Error)]
+pub enum CameraFileError {
+    #[error("cannot open camera file {0}")]
+    Unreadable(String),
+    #[error("{0}: camera_matrix must be a 3x3 matrix")]
+    NotThreeByThree(String),
+    #[error("{0}: unusable camera: {1}")]
+    Unusable(String, CameraError),
+    #[error("{0}: {1}")]
+    Cv(String, CvError),
+}
+
 /// Intrinsics of a pinhole camera (OpenCV camera frame: x right, y down, z forward).
 #[derive(Debug, Clone, PartialEq)]
 pub struct PinholeCamera {
@@ -33,6 +51,46 @@ pub struct PinholeCamera {
 }
 
 impl PinholeCamera {
+    /// Reads a camera from OpenCV FileStorage YAML (`camera_matrix`, optional
+    /// `distortion_coefficients`, as OpenCV's calibration writes them) for an image of the
+    /// given size.
+    pub fn read_yaml(path: &Path, width: u32, height: u32) -> Result<Self, CameraFileError> {
+        let name = path.display().to_string();
+        let cv = |e: opencv::Error| CameraFileError::Cv(name.clone(), CvError(e));
+        let storage = FileStorage::new(path, FileStorage_Mode::READ as i32, "")
+            .map_err(|_| CameraFileError::Unreadable(name.clone()))?;
+        if !storage.is_opened().map_err(cv)? {
+            return Err(CameraFileError::Unreadable(name));
+        }
+        let matrix = storage
+            .get("camera_matrix")
+            .map_err(cv)?
+            .mat()
+            .map_err(cv)?;
+        if matrix.rows() != 3 || matrix.cols() != 3 {
+            return Err(CameraFileError::NotThreeByThree(name));
+        }
+        let mut k = Mat::default();
+        matrix.convert_to(&mut k, CV_64F, 1.0, 0.0).map_err(cv)?;
+        let at = |r, c| k.at_2d::<f64>(r, c).copied().map_err(cv);
+        let node = storage.get("distortion_coefficients").map_err(cv)?;
+        let distortion = if node.empty().map_err(cv)? {
+            vec![]
+        } else {
+            let d = node.mat().map_err(cv)?;
+            let mut d64 = Mat::default();
+            d.convert_to(&mut d64, CV_64F, 1.0, 0.0).map_err(cv)?;
+            d64.data_typed::<f64>().map_err(cv)?.to_vec()
+        };
+        Self::new(
+            width,
+            height,
+            [at(0, 0)?, at(1, 1)?, at(0, 2)?, at(1, 2)?],
+            distortion,
+        )
+        .map_err(|e| CameraFileError::Unusable(name, e))
+    }
+
     /// Builds a camera and checks that every parameter is usable.
     pub fn new(
         width: u32,

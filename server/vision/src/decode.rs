@@ -4,6 +4,7 @@
 //! with its end-of-image marker before it is decoded.
 
 use crate::depth::DepthImage;
+use crate::image::GreyImage;
 use crate::CvError;
 use opencv::core::{Mat, CV_16UC1, CV_8UC1, CV_8UC3};
 use opencv::imgcodecs::{imdecode, IMREAD_ANYDEPTH, IMREAD_GRAYSCALE};
@@ -75,7 +76,11 @@ fn check_size(what: &'static str, image: &Mat, width: u32, height: u32) -> Resul
 }
 
 /// Decodes a colour image straight to 8-bit greyscale (what detection and features use).
-pub fn colour_to_grey(colour: &ColourImage, width: u32, height: u32) -> Result<Mat, DecodeError> {
+pub fn colour_to_grey(
+    colour: &ColourImage,
+    width: u32,
+    height: u32,
+) -> Result<GreyImage, DecodeError> {
     let data = colour.data.as_slice();
     let grey = match ColourEncoding::try_from(colour.encoding) {
         Ok(ColourEncoding::Jpeg) => {
@@ -127,7 +132,7 @@ pub fn colour_to_grey(colour: &ColourImage, width: u32, height: u32) -> Result<M
         return Err(DecodeError::Undecodable("colour"));
     }
     check_size("colour image", &grey, width, height)?;
-    Ok(grey)
+    Ok(GreyImage::from_mat(grey)?)
 }
 
 /// Decodes a depth image into sensor units.

@@ -2,6 +2,7 @@
 //! FileStorage YAML (`nmarkers`, `markersize`, optional `maxCorrectionBits`, `marker_N` bit
 //! strings, row-major, 1 = white), as written by `cv::aruco::Dictionary::writeDictionary`.
 
+use crate::image::GreyImage;
 use crate::CvError;
 use opencv::aruco::Dictionary;
 use opencv::core::{Mat, Ptr};
@@ -109,7 +110,7 @@ impl MarkerDictionary {
     }
 
     /// The OpenCV dictionary object.
-    pub fn opencv(&self) -> Result<Ptr<Dictionary>, CvError> {
+    pub(crate) fn opencv(&self) -> Result<Ptr<Dictionary>, CvError> {
         match &self.source {
             Source::Predefined(index) => Ok(opencv::aruco::get_predefined_dictionary_i32(*index)?),
             Source::Custom {
@@ -233,10 +234,10 @@ impl MarkerDictionary {
     }
 
     /// The marker's image with a one-bit black border, `side_px` pixels square (white = 255).
-    pub fn draw(&self, id: i32, side_px: i32) -> Result<Mat, CvError> {
+    pub fn draw(&self, id: i32, side_px: i32) -> Result<GreyImage, CvError> {
         let mut image = Mat::default();
         opencv::aruco::draw_marker(&self.opencv()?, id, side_px, &mut image, 1)?;
-        Ok(image)
+        GreyImage::from_mat(image)
     }
 }
 

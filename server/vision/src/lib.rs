@@ -10,13 +10,14 @@ pub mod camera;
 pub mod decode;
 pub mod depth;
 pub mod dictionary;
+pub mod image;
 pub mod orb;
 pub mod pose;
 pub mod synth;
 
-pub use opencv;
+pub use image::{GreyImage, ImageError};
 
 /// An OpenCV call failed; carries OpenCV's own message.
 #[derive(Debug, thiserror::Error)]
 #[error("OpenCV: {0}")]
-pub struct CvError(#[from] pub opencv::Error);
+pub struct CvError(#[from] opencv::Error);

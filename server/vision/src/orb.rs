@@ -12,6 +12,7 @@
 
 use crate::brief::{Descriptor, Smoothed, REACH};
 use crate::depth::DepthImage;
+use crate::image::GreyImage;
 use crate::CvError;
 use opencv::core::{KeyPoint, Mat, Rect, Size, Vector};
 use opencv::imgproc;
@@ -130,17 +131,11 @@ impl OrbExtractor {
     /// times baseline (`fx · B`, pixel·metres), also their depth and right-image x.
     pub fn extract(
         &mut self,
-        grey: &Mat,
+        grey: &GreyImage,
         depth: Option<(&DepthImage, f64)>,
     ) -> Result<Extraction, CvError> {
-        // Orientation reads the pixels directly, which needs them in one block.
-        let owned;
-        let grey = if grey.is_continuous() {
-            grey
-        } else {
-            owned = grey.try_clone()?;
-            &owned
-        };
+        // Continuous, as orientation needs: it reads the pixels directly.
+        let grey = grey.mat();
         let mut features = Vec::with_capacity(self.params.features);
         let mut descriptors = Vec::with_capacity(self.params.features);
         // Two pyramids: corners are searched on levels shrunk straight from the image, and

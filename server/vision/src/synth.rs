@@ -7,6 +7,7 @@
 
 use crate::camera::PinholeCamera;
 use crate::dictionary::MarkerDictionary;
+use crate::image::GreyImage;
 use crate::CvError;
 use nalgebra::{Isometry3, Point2, Point3, Vector3};
 use opencv::core::{
@@ -32,14 +33,14 @@ pub struct PlacedMarker {
 
 /// A rendered frame: 8-bit greyscale image and depth in millimetres (0 = none).
 pub struct RenderedFrame {
-    pub grey: Mat,
+    pub grey: GreyImage,
     pub depth_mm: Vec<u16>,
 }
 
 impl RenderedFrame {
     /// The grey image's bytes, row-major.
-    pub fn grey_bytes(&self) -> Result<Vec<u8>, CvError> {
-        Ok(self.grey.data_bytes()?.to_vec())
+    pub fn grey_bytes(&self) -> &[u8] {
+        self.grey.pixels()
     }
 }
 
@@ -66,7 +67,7 @@ pub fn render(
         let drawn = dictionary.draw(marker.id, bits * PIXELS_PER_BIT)?;
         let mut padded = Mat::default();
         copy_make_border(
-            &drawn,
+            drawn.mat(),
             &mut padded,
             PIXELS_PER_BIT,
             PIXELS_PER_BIT,
@@ -119,7 +120,7 @@ pub fn render(
         imgproc::INTER_AREA,
     )?;
     Ok(RenderedFrame {
-        grey,
+        grey: GreyImage::from_mat(grey)?,
         depth_mm: depth_mm(camera, markers, background_m),
     })
 }

@@ -7,7 +7,6 @@
 pub mod queue;
 
 use crate::config::Config;
-use crate::pipeline::{FrameHeader, FrameProcessor};
 use crate::robots::{now_ns, ProcessingTimes, Registry, RobotEntry};
 use queue::{Arrival, Pushed};
 use std::panic::{catch_unwind, AssertUnwindSafe};
@@ -15,6 +14,7 @@ use std::sync::atomic::Ordering;
 use std::sync::{Arc, Mutex};
 use std::thread::JoinHandle;
 use std::time::Duration;
+use vsgraphs_pipeline::{FrameHeader, FrameProcessor};
 use vsgraphs_proto::api::{self, FrameDetections, Presence};
 use vsgraphs_proto::keys;
 use zenoh::sample::SampleKind;

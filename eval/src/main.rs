@@ -1,0 +1,310 @@
+//! `vsgraphs-eval`: evaluation tools.
+
+use anyhow::Context;
+use clap::{Parser, Subcommand, ValueEnum};
+use std::path::PathBuf;
+use vsgraphs_eval::metrics::{Alignment, Compare, Relation};
+use vsgraphs_eval::posegraph;
+use vsgraphs_eval::scenario::ScenarioOptions;
+use vsgraphs_eval::score::{self, Metric};
+use vsgraphs_eval::semantics::{self, MapAlignment};
+use vsgraphs_optim::factors::pose::PoseError;
+use vsgraphs_optim::{Method, Options};
+use vsgraphs_pipeline::PipelineConfig;
+use vsgraphs_proto::model::BuildingModel;
+use vsgraphs_sim::scenarios::Scenario;
+
+#[derive(Parser)]
+#[command(name = "vsgraphs-eval", version, about = "vsgraphs evaluation tools")]
+struct Cli {
+    #[command(subcommand)]
+    command: Command,
+}
+
+#[derive(Clone, Copy, ValueEnum)]
+enum ErrorArg {
+    /// g2o's error [t; vec(q)]: the cost is g2o's chi2.
+    Quaternion,
+    /// Log(Z⁻¹ Xi⁻¹ Xj), as GTSAM and factrs minimise.
+    LogMap,
+}
+
+#[derive(Clone, Copy, ValueEnum)]
+enum MethodArg {
+    /// Levenberg–Marquardt.
+    Lm,
+    /// Gauss–Newton.
+    Gn,
+}
+
+#[derive(Clone, Copy, ValueEnum)]
+enum AlignArg {
+    /// Rotation and translation (evo's -a).
+    Se3,
+    /// Rotation, translation and scale (evo's -as), for monocular estimates.
+    Sim3,
+    None,
+}
+
+#[derive(Clone, Copy, ValueEnum)]
+enum RelationArg {
+    /// Translation error, metres.
+    Trans,
+    /// Rotation angle error, degrees.
+    Angle,
+}
+
+/// Options shared by `ate` and `rpe`.
+#[derive(clap::Args)]
+struct CompareArgs {
+    /// Reference (ground truth) trajectory, TUM format.
+    reference: PathBuf,
+    /// Estimated trajectory, TUM format.
+    estimate: PathBuf,
+    #[arg(long, value_enum, default_value = "se3")]
+    align: AlignArg,
+    #[arg(long, value_enum, default_value = "trans")]
+    relation: RelationArg,
+    /// Largest timestamp difference for a match, seconds.
+    #[arg(long, default_value_t = 0.01)]
+    max_diff: f64,
+    /// Added to the estimate's timestamps before matching, seconds.
+    #[arg(long, default_value_t = 0.0, allow_negative_numbers = true)]
+    offset: f64,
+    /// Print JSON instead of the table.
+    #[arg(long)]
+    json: bool,
+}
+
+impl CompareArgs {
+    fn compare(&self) -> Compare {
+        Compare {
+            alignment: match self.align {
+                AlignArg::Se3 => Alignment::Se3,
+                AlignArg::Sim3 => Alignment::Sim3,
+                AlignArg::None => Alignment::None,
+            },
+            relation: match self.relation {
+                RelationArg::Trans => Relation::Translation,
+                RelationArg::Angle => Relation::AngleDeg,
+            },
+            max_diff: self.max_diff,
+            offset: self.offset,
+        }
+    }
+
+    fn run(&self, metric: Metric) -> anyhow::Result<()> {
+        let report = score::run(&self.reference, &self.estimate, metric, &self.compare())?;
+        if self.json {
+            println!("{}", serde_json::to_string_pretty(&report)?);
+        } else {
+            score::print_table(&report);
+        }
+        Ok(())
+    }
+}
+
+#[derive(Clone, Copy, ValueEnum)]
+enum MapAlignArg {
+    Markers,
+    None,
+}
+
+#[derive(Subcommand)]
+enum Command {
+    /// Absolute trajectory error of an estimate against a reference (TUM files), as evo_ape.
+    Ate {
+        #[command(flatten)]
+        args: CompareArgs,
+    },
+    /// Relative pose error over pose pairs DELTA matched poses apart, as evo_rpe.
+    Rpe {
+        #[command(flatten)]
+        args: CompareArgs,
+        #[arg(long, default_value_t = 1)]
+        delta: usize,
+        /// Every pair (i, i + delta) instead of consecutive ones.
+        #[arg(long)]
+        all_pairs: bool,
+    },
+    /// Semantic accuracy of a building model (JSON) against ground truth (e.g. a simulator's
+    /// ground_truth.json): walls, doorways, rooms and corridors matched one to one.
+    Semantics {
+        /// The reference model.
+        ground_truth: PathBuf,
+        /// The model to score.
+        map: PathBuf,
+        /// markers: align the map to the reference by the markers both hold; none: they share
+        /// a frame.
+        #[arg(long, value_enum, default_value = "markers")]
+        align: MapAlignArg,
+        /// Print JSON instead of the table.
+        #[arg(long)]
+        json: bool,
+    },
+    /// Render one robot of a simulated scenario (built-in name or JSON file), run it through the
+    /// server's pipeline (decoding, markers, tracking, mapping) without the network, and print
+    /// both scores: ATE against the walk, and the map's model against the building.
+    Scenario {
+        /// seq01 … seq06, two_robots, or a scenario JSON file.
+        scenario: String,
+        /// Which robot's walk (index into the scenario's routes).
+        #[arg(long, default_value_t = 0)]
+        robot: usize,
+        /// Stop after this many frames.
+        #[arg(long)]
+        limit: Option<usize>,
+        /// Renderer noise seed.
+        #[arg(long, default_value_t = 1)]
+        seed: u64,
+        /// Server configuration (TOML); default: the built-in defaults.
+        #[arg(long)]
+        config: Option<PathBuf>,
+        /// Also write the estimated trajectory (TUM: estimate.txt refined, estimate_as_tracked.txt
+        /// as tracked at the time), the reference (TUM) and the map's model (JSON) into this
+        /// directory.
+        #[arg(long)]
+        out: Option<PathBuf>,
+        /// Print JSON instead of the tables.
+        #[arg(long)]
+        json: bool,
+    },
+    /// Optimise a g2o pose graph (VERTEX_SE3:QUAT / EDGE_SE3:QUAT) and print cost per iteration.
+    Posegraph {
+        input: PathBuf,
+        /// Write the optimised graph here (g2o format).
+        #[arg(long, short)]
+        output: Option<PathBuf>,
+        #[arg(long, value_enum, default_value = "quaternion")]
+        error: ErrorArg,
+        #[arg(long, value_enum, default_value = "lm")]
+        method: MethodArg,
+        #[arg(long, default_value_t = 100)]
+        max_iterations: usize,
+        /// Threads for large problems (0: one per core).
+        #[arg(long, default_value_t = 0)]
+        threads: usize,
+        /// Print JSON instead of the table.
+        #[arg(long)]
+        json: bool,
+    },
+}
+
+fn main() -> anyhow::Result<()> {
+    // Logs of the server's pipeline (scenario runs) go to stderr; RUST_LOG chooses.
+    tracing_subscriber::fmt()
+        .with_env_filter(
+            tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| "warn".into()),
+        )
+        .with_writer(std::io::stderr)
+        .init();
+    match Cli::parse().command {
+        Command::Ate { args } => args.run(Metric::Ape)?,
+        Command::Rpe {
+            args,
+            delta,
+            all_pairs,
+        } => args.run(Metric::Rpe { delta, all_pairs })?,
+        Command::Semantics {
+            ground_truth,
+            map,
+            align,
+            json,
+        } => {
+            let read = |path: &PathBuf| -> anyhow::Result<BuildingModel> {
+                let text = std::fs::read_to_string(path)
+                    .with_context(|| format!("reading {}", path.display()))?;
+                serde_json::from_str(&text)
+                    .with_context(|| format!("{} is not a building model", path.display()))
+            };
+            let alignment = match align {
+                MapAlignArg::Markers => MapAlignment::Markers,
+                MapAlignArg::None => MapAlignment::None,
+            };
+            let report = semantics::score(
+                &read(&ground_truth)?,
+                &read(&map)?,
+                alignment,
+                &semantics::Gates::default(),
+            )?;
+            if json {
+                println!("{}", serde_json::to_string_pretty(&report)?);
+            } else {
+                semantics::print_table(&report);
+            }
+        }
+        Command::Scenario {
+            scenario,
+            robot,
+            limit,
+            seed,
+            config,
+            out,
+            json,
+        } => {
+            let config = match config {
+                Some(path) => PipelineConfig::load(&path)?,
+                None => PipelineConfig::default(),
+            };
+            let scenario = Scenario::load(&scenario)?;
+            let options = ScenarioOptions {
+                robot,
+                limit,
+                seed,
+                ..ScenarioOptions::default()
+            };
+            let run = vsgraphs_eval::scenario::run(&config, &scenario, &options, |done, total| {
+                if done % 250 == 0 || done == total {
+                    eprintln!("{done}/{total} frames");
+                }
+            })?;
+            if let Some(dir) = out {
+                std::fs::create_dir_all(&dir)
+                    .with_context(|| format!("creating {}", dir.display()))?;
+                run.estimate.write_tum(&dir.join("estimate.txt"))?;
+                run.estimate_as_tracked
+                    .write_tum(&dir.join("estimate_as_tracked.txt"))?;
+                run.reference.write_tum(&dir.join("groundtruth.txt"))?;
+                std::fs::write(
+                    dir.join("model.json"),
+                    serde_json::to_string_pretty(&run.model)?,
+                )?;
+            }
+            if json {
+                println!("{}", serde_json::to_string_pretty(&run)?);
+            } else {
+                vsgraphs_eval::scenario::print_table(&run);
+            }
+        }
+        Command::Posegraph {
+            input,
+            output,
+            error,
+            method,
+            max_iterations,
+            threads,
+            json,
+        } => {
+            let options = Options {
+                method: match method {
+                    MethodArg::Lm => Method::LevenbergMarquardt,
+                    MethodArg::Gn => Method::GaussNewton,
+                },
+                max_iterations,
+                threads,
+                ..Options::default()
+            };
+            let error = match error {
+                ErrorArg::Quaternion => PoseError::Quaternion,
+                ErrorArg::LogMap => PoseError::LogMap,
+            };
+            let run = posegraph::run(&input, output.as_deref(), error, options)?;
+            if json {
+                println!("{}", serde_json::to_string_pretty(&run)?);
+            } else {
+                posegraph::print_table(&run);
+            }
+        }
+    }
+    Ok(())
+}

@@ -1,0 +1,250 @@
+//! `vsgraphs-eval scenario`: one robot of a simulated scenario rendered, encoded as the robot
+//! would send it, and run through the server's frame pipeline (decoding, marker detection,
+//! tracking, mapping) without the network; then both scores: the trajectory against the walk,
+//! and the map's building model against the building's ground truth.
+
+use crate::metrics::Compare;
+use crate::score::{self, Metric, Report};
+use crate::semantics::{self, Gates, MapAlignment, SemanticReport};
+use anyhow::Context;
+use serde::Serialize;
+use std::sync::mpsc;
+use vsgraphs_datasets::Trajectory;
+use vsgraphs_pipeline::offline::{self, FrameSource, OfflineFrame, OfflineSummary};
+use vsgraphs_pipeline::PipelineConfig;
+use vsgraphs_proto::model::BuildingModel;
+use vsgraphs_proto::DepthEncoding;
+use vsgraphs_sim::scenarios::Scenario;
+use vsgraphs_sim::sequence::render_frame;
+use vsgraphs_sim::wire::{camera_model, encode_frame, DEPTH_SCALE};
+use vsgraphs_sim::{Building, Renderer};
+
+#[derive(Clone, Debug)]
+pub struct ScenarioOptions {
+    /// Which robot's walk (index into the scenario's routes).
+    pub robot: usize,
+    /// Stop after this many frames.
+    pub limit: Option<usize>,
+    /// Renderer noise seed (the same seed gives the same frames).
+    pub seed: u64,
+    pub jpeg_quality: u8,
+}
+
+impl Default for ScenarioOptions {
+    fn default() -> Self {
+        Self {
+            robot: 0,
+            limit: None,
+            seed: 1,
+            jpeg_quality: 90,
+        }
+    }
+}
+
+/// What a scenario run gave.
+#[derive(Debug, Serialize)]
+pub struct ScenarioRun {
+    pub robot: String,
+    pub frames: usize,
+    pub tracked: usize,
+    pub untracked: usize,
+    pub maps: usize,
+    pub keyframes: usize,
+    pub markers: usize,
+    /// Tracking events with the frame's time, seconds.
+    pub events: Vec<(f64, String)>,
+    /// Median ms per frame: whole pipeline, decoding, markers, ORB features, tracking; and mean
+    /// mapping and local BA ms per frame.
+    pub median_ms: StageMedians,
+    /// ATE of the map the run ends in, SE(3)-aligned, of the refined trajectory (each frame
+    /// moved with its reference keyframe, as ORB-SLAM writes trajectories); `None` when fewer
+    /// than 3 poses.
+    pub ate: Option<Report>,
+    /// ATE RMSE of the same frames' poses as tracking gave them at the time, metres.
+    pub ate_as_tracked_rmse: Option<f64>,
+    /// ATE over the reference path length (the measure for simulated runs).
+    pub ate_percent_of_path: Option<f64>,
+    /// The map's building model scored against the building (aligned by shared markers), or
+    /// why it could not be.
+    pub semantics: Option<SemanticReport>,
+    pub semantics_error: Option<String>,
+    #[serde(skip)]
+    pub model: BuildingModel,
+    #[serde(skip)]
+    pub estimate: Trajectory,
+    #[serde(skip)]
+    pub estimate_as_tracked: Trajectory,
+    #[serde(skip)]
+    pub reference: Trajectory,
+}
+
+#[derive(Debug, Serialize)]
+pub struct StageMedians {
+    pub pipeline: f64,
+    pub decode: f64,
+    pub markers: f64,
+    pub features: f64,
+    pub tracking: f64,
+    pub mapping_mean: f64,
+    /// Mean local BA solve time per frame, on its own thread.
+    pub local_ba_mean: f64,
+}
+
+/// Renders and runs one robot of `scenario`; `progress(done, total)` after every frame.
+pub fn run(
+    config: &PipelineConfig,
+    scenario: &Scenario,
+    options: &ScenarioOptions,
+    progress: impl FnMut(usize, usize),
+) -> anyhow::Result<ScenarioRun> {
+    let building = Building::from_plan(&scenario.plan).context("building the plan")?;
+    let renderer = Renderer::new(
+        &scenario.plan,
+        &building,
+        scenario.render.clone(),
+        options.seed,
+    );
+    let mut walks = scenario.walks().context("planning the walks")?;
+    anyhow::ensure!(
+        options.robot < walks.len(),
+        "the scenario has {} robot(s); there is no robot {}",
+        walks.len(),
+        options.robot
+    );
+    let walk = walks.swap_remove(options.robot);
+    let total = options
+        .limit
+        .map_or(walk.times.len(), |l| l.min(walk.times.len()));
+    let camera = camera_model(&renderer);
+    let reference = walk.trajectory(0.0, total);
+    let truth: BuildingModel = serde_json::from_str(&building.ground_truth_json())
+        .context("reading the building's ground truth as a model")?;
+
+    // Frames are rendered and encoded on another thread, a few ahead of the pipeline.
+    let (sender, receiver) = mpsc::sync_channel::<Result<OfflineFrame, String>>(4);
+    let (summary, poses) = std::thread::scope(|scope| {
+        let (renderer, walk) = (&renderer, &walk);
+        let quality = options.jpeg_quality;
+        scope.spawn(move || {
+            for i in 0..total {
+                let frame = render_frame(renderer, walk, i);
+                let encoded = encode_frame(&frame, quality, DepthEncoding::Rvl)
+                    .map(|(colour, depth)| OfflineFrame {
+                        timestamp_ns: (walk.times[i] * 1e9).round() as u64,
+                        colour,
+                        depth,
+                    })
+                    .map_err(|e| format!("encoding frame {i}: {e}"));
+                if sender.send(encoded).is_err() {
+                    return;
+                }
+            }
+        });
+        let source = FrameSource {
+            camera: &camera,
+            depth_scale: DEPTH_SCALE,
+            total,
+        };
+        offline::run_frames(config, source, receiver.into_iter(), progress)
+    })?;
+
+    let last_map = poses.refined.last().map(|p| p.map);
+    let in_last_map = |poses: &[vsgraphs_proto::api::TrajectoryPose]| {
+        let kept: Vec<_> = poses
+            .iter()
+            .filter(|p| Some(p.map) == last_map)
+            .copied()
+            .collect();
+        offline::trajectory(&kept)
+    };
+    let estimate = in_last_map(&poses.refined);
+    let estimate_as_tracked = in_last_map(&poses.as_tracked);
+    // SE(3) alignment and translation error, as evo_ape -a.
+    let compare = Compare::default();
+    let ate = (estimate.len() >= 3)
+        .then(|| score::score(&reference, &estimate, Metric::Ape, &compare))
+        .transpose()?;
+    let ate_as_tracked_rmse = (estimate_as_tracked.len() >= 3)
+        .then(|| score::score(&reference, &estimate_as_tracked, Metric::Ape, &compare))
+        .transpose()?
+        .map(|r| r.stats.rmse);
+    let ate_percent_of_path = ate
+        .as_ref()
+        .map(|r| 100.0 * r.stats.rmse / r.reference_path_length.max(1e-9));
+    let model = summary
+        .map_views
+        .iter()
+        .find(|v| Some(v.map) == last_map)
+        .map(vsgraphs_pipeline::model::building_model)
+        .unwrap_or_default();
+    let (semantics, semantics_error) =
+        match semantics::score(&truth, &model, MapAlignment::Markers, &Gates::default()) {
+            Ok(report) => (Some(report), None),
+            Err(e) => (None, Some(e.to_string())),
+        };
+    Ok(ScenarioRun {
+        robot: walk.robot.clone(),
+        frames: summary.frames,
+        tracked: summary.tracked,
+        untracked: summary.untracked,
+        maps: summary.maps,
+        keyframes: summary.keyframes,
+        markers: summary.markers,
+        events: summary.events.clone(),
+        median_ms: medians(&summary),
+        ate,
+        ate_as_tracked_rmse,
+        ate_percent_of_path,
+        semantics,
+        semantics_error,
+        model,
+        estimate,
+        estimate_as_tracked,
+        reference,
+    })
+}
+
+fn medians(s: &OfflineSummary) -> StageMedians {
+    StageMedians {
+        pipeline: offline::median(&s.pipeline_ms),
+        decode: offline::median(&s.decode_ms),
+        markers: offline::median(&s.detection_ms),
+        features: offline::median(&s.features_ms),
+        tracking: offline::median(&s.tracking_ms),
+        mapping_mean: s.mapping_ms.iter().sum::<f64>() / s.mapping_ms.len().max(1) as f64,
+        local_ba_mean: s.local_ba_ms.iter().sum::<f64>() / s.local_ba_ms.len().max(1) as f64,
+    }
+}
+
+pub fn print_table(run: &ScenarioRun) {
+    println!(
+        "robot {}: {} frames, {} tracked, {} not tracked; {} map(s), {} keyframes, {} markers",
+        run.robot, run.frames, run.tracked, run.untracked, run.maps, run.keyframes, run.markers
+    );
+    for (t, event) in &run.events {
+        println!("  t={t:.3} s: {event}");
+    }
+    let m = &run.median_ms;
+    println!(
+        "median ms per frame: pipeline {:.2} (decode {:.2}, markers {:.2}, features {:.2}, tracking {:.2}); means per frame: mapping {:.2}, local BA {:.2} (wherever it was solved)",
+        m.pipeline, m.decode, m.markers, m.features, m.tracking, m.mapping_mean, m.local_ba_mean
+    );
+    println!();
+    match &run.ate {
+        Some(report) => {
+            score::print_table(report);
+            if let Some(p) = run.ate_percent_of_path {
+                println!("ATE RMSE is {p:.3} % of the path");
+            }
+            if let Some(rmse) = run.ate_as_tracked_rmse {
+                println!("ATE RMSE of the poses as tracked at the time: {rmse:.6} m");
+            }
+        }
+        None => println!("ATE: fewer than 3 tracked poses"),
+    }
+    println!();
+    match (&run.semantics, &run.semantics_error) {
+        (Some(report), _) => semantics::print_table(report),
+        (None, e) => println!("semantics: not scored: {}", e.as_deref().unwrap_or("?")),
+    }
+}

@@ -1,0 +1,274 @@
+//! The pipeline's settings: the `[markers]` and `[tracking]` sections of the server's TOML file
+//! (`config/vsgraphs.toml` documents every field with its default). The server embeds them in
+//! its own configuration; the evaluation tools read just these sections from the same file.
+
+use serde::{Deserialize, Serialize};
+use std::path::{Path, PathBuf};
+use thiserror::Error;
+use vsgraphs_slam::DepthResidual;
+use vsgraphs_vision::aruco::CornerRefinement;
+use vsgraphs_vision::dictionary::{DictionaryError, MarkerDictionary};
+
+/// The largest frame accepted on the wire by default, bytes (`[ingest] max_frame_bytes`).
+pub const DEFAULT_MAX_FRAME_BYTES: usize = 32 << 20;
+
+/// What the frame pipeline needs to know: how markers are detected and how robots are tracked.
+/// Other sections of the file are the server's and are not read here.
+#[derive(Debug, Clone, PartialEq, Default, Serialize, Deserialize)]
+#[serde(default)]
+pub struct PipelineConfig {
+    pub markers: MarkerConfig,
+    pub tracking: TrackingConfig,
+}
+
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct MarkerConfig {
+    pub dictionary: String,
+    pub dictionary_file: PathBuf,
+    pub side_m: f64,
+    pub corner_refinement: CornerRefinement,
+    pub depth_refinement: bool,
+    pub depth_agreement: f64,
+    /// Detect markers on a second thread while the worker extracts the frame's features
+    /// (false: one after the other on the worker, for one-core robots and one-core timing).
+    pub beside_features: bool,
+}
+
+impl Default for MarkerConfig {
+    fn default() -> Self {
+        Self {
+            dictionary: "DICT_4X4_100".into(),
+            dictionary_file: PathBuf::new(),
+            side_m: 0.08,
+            corner_refinement: CornerRefinement::Subpixel,
+            depth_refinement: true,
+            depth_agreement: 0.15,
+            beside_features: true,
+        }
+    }
+}
+
+/// How depth enters tracking's and bundle adjustment's reprojection residuals.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Default)]
+#[serde(rename_all = "snake_case")]
+pub enum DepthResidualSetting {
+    /// By each frame's depth registration: the disparity for depth aligned to colour, the
+    /// right-image form for depth that is not.
+    #[default]
+    Auto,
+    Disparity,
+    RightImage,
+}
+
+/// Camera tracking (RGB-D SLAM) per robot.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct TrackingConfig {
+    pub enabled: bool,
+    pub features: usize,
+    pub virtual_baseline_m: f64,
+    pub close_depth_baselines: f64,
+    pub depth_residual: DepthResidualSetting,
+    pub keyframe_ratio: f64,
+    pub local_ba_iterations: usize,
+    pub local_ba_threads: usize,
+    pub new_map_after_s: f64,
+    pub marker_landmarks: bool,
+    pub background_ba: bool,
+    pub triangulate_points: bool,
+    pub cull_keyframes: bool,
+}
+
+impl Default for TrackingConfig {
+    fn default() -> Self {
+        let slam = vsgraphs_slam::TrackerConfig::default();
+        Self {
+            enabled: true,
+            features: slam.orb.features,
+            virtual_baseline_m: slam.virtual_baseline_m,
+            close_depth_baselines: slam.close_depth_baselines,
+            depth_residual: match slam.depth_residual {
+                None => DepthResidualSetting::Auto,
+                Some(DepthResidual::Disparity) => DepthResidualSetting::Disparity,
+                Some(DepthResidual::RightImage) => DepthResidualSetting::RightImage,
+            },
+            keyframe_ratio: slam.keyframe_ratio,
+            local_ba_iterations: slam.local_ba_iterations,
+            local_ba_threads: slam.local_ba_threads,
+            new_map_after_s: slam.new_map_after_s,
+            marker_landmarks: slam.marker_landmarks,
+            background_ba: slam.background_ba,
+            triangulate_points: slam.triangulate_points,
+            cull_keyframes: slam.cull_keyframes,
+        }
+    }
+}
+
+impl TrackingConfig {
+    /// The tracker's settings: these fields over its defaults.
+    pub fn tracker(&self) -> vsgraphs_slam::TrackerConfig {
+        let mut config = vsgraphs_slam::TrackerConfig::default();
+        config.orb.features = self.features;
+        config.virtual_baseline_m = self.virtual_baseline_m;
+        config.close_depth_baselines = self.close_depth_baselines;
+        config.depth_residual = match self.depth_residual {
+            DepthResidualSetting::Auto => None,
+            DepthResidualSetting::Disparity => Some(DepthResidual::Disparity),
+            DepthResidualSetting::RightImage => Some(DepthResidual::RightImage),
+        };
+        config.keyframe_ratio = self.keyframe_ratio;
+        config.local_ba_iterations = self.local_ba_iterations;
+        config.local_ba_threads = self.local_ba_threads;
+        config.new_map_after_s = self.new_map_after_s;
+        config.marker_landmarks = self.marker_landmarks;
+        config.background_ba = self.background_ba;
+        config.triangulate_points = self.triangulate_points;
+        config.cull_keyframes = self.cull_keyframes;
+        config
+    }
+}
+
+/// A field whose value parses but cannot work.
+#[derive(Debug, Error, PartialEq)]
+#[error("{field}: {message}")]
+pub struct InvalidField {
+    pub field: &'static str,
+    pub message: String,
+}
+
+#[derive(Debug, Error)]
+pub enum PipelineConfigError {
+    #[error("cannot read {path}: {source}")]
+    Io {
+        path: PathBuf,
+        source: std::io::Error,
+    },
+    #[error("{path}: {source}")]
+    Parse {
+        path: PathBuf,
+        source: toml::de::Error,
+    },
+    #[error(transparent)]
+    Invalid(#[from] InvalidField),
+}
+
+impl PipelineConfig {
+    /// Reads the `[markers]` and `[tracking]` sections of a server configuration file; fields
+    /// it leaves out keep their defaults, unknown fields in those sections are refused.
+    pub fn load(path: &Path) -> Result<Self, PipelineConfigError> {
+        let text = std::fs::read_to_string(path).map_err(|source| PipelineConfigError::Io {
+            path: path.to_owned(),
+            source,
+        })?;
+        let config: PipelineConfig =
+            toml::from_str(&text).map_err(|source| PipelineConfigError::Parse {
+                path: path.to_owned(),
+                source,
+            })?;
+        config.validate()?;
+        Ok(config)
+    }
+
+    /// Checks values that parse but cannot work.
+    pub fn validate(&self) -> Result<(), InvalidField> {
+        let invalid = |field, message: String| Err(InvalidField { field, message });
+        if !(self.markers.side_m.is_finite() && self.markers.side_m > 0.0) {
+            return invalid(
+                "markers.side_m",
+                format!("{} is not a positive length in metres", self.markers.side_m),
+            );
+        }
+        if !(self.markers.depth_agreement.is_finite() && self.markers.depth_agreement > 0.0) {
+            return invalid(
+                "markers.depth_agreement",
+                "must be a positive fraction".into(),
+            );
+        }
+        let t = &self.tracking;
+        if !(50..=10_000).contains(&t.features) {
+            return invalid(
+                "tracking.features",
+                format!("{} is not within 50..=10000", t.features),
+            );
+        }
+        if !(1..=64).contains(&t.local_ba_threads) {
+            return invalid(
+                "tracking.local_ba_threads",
+                format!("{} is not within 1..=64", t.local_ba_threads),
+            );
+        }
+        if !(t.virtual_baseline_m.is_finite() && t.virtual_baseline_m > 0.0) {
+            return invalid(
+                "tracking.virtual_baseline_m",
+                "must be a positive length in metres".into(),
+            );
+        }
+        if !(t.close_depth_baselines.is_finite() && t.close_depth_baselines > 0.0) {
+            return invalid(
+                "tracking.close_depth_baselines",
+                "must be a positive number of baselines".into(),
+            );
+        }
+        if !(t.keyframe_ratio > 0.0 && t.keyframe_ratio < 1.0) {
+            return invalid(
+                "tracking.keyframe_ratio",
+                "must be a fraction between 0 and 1".into(),
+            );
+        }
+        if !(t.new_map_after_s.is_finite() && t.new_map_after_s >= 0.0) {
+            return invalid(
+                "tracking.new_map_after_s",
+                "must be zero or more seconds".into(),
+            );
+        }
+        Ok(())
+    }
+}
+
+/// The dictionary the configuration names: a custom file if given, else a predefined name.
+pub fn load_dictionary(settings: &MarkerConfig) -> Result<MarkerDictionary, DictionaryError> {
+    if settings.dictionary_file.as_os_str().is_empty() {
+        MarkerDictionary::predefined(&settings.dictionary)
+    } else {
+        MarkerDictionary::from_yaml_file(&settings.dictionary_file)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_depth_residual_setting_reaches_the_tracker() {
+        let mut tracking = TrackingConfig::default();
+        assert_eq!(tracking.tracker().depth_residual, None);
+        for (setting, chosen) in [
+            (DepthResidualSetting::Disparity, DepthResidual::Disparity),
+            (DepthResidualSetting::RightImage, DepthResidual::RightImage),
+        ] {
+            tracking.depth_residual = setting;
+            assert_eq!(tracking.tracker().depth_residual, Some(chosen));
+        }
+    }
+
+    #[test]
+    fn the_server_file_is_read_for_its_pipeline_sections_only() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("c.toml");
+        std::fs::write(
+            &path,
+            "[http]\nlisten = \"127.0.0.1:9000\"\n[markers]\nside_m = 0.12\n",
+        )
+        .unwrap();
+        let config = PipelineConfig::load(&path).unwrap();
+        assert_eq!(config.markers.side_m, 0.12);
+        assert_eq!(config.tracking, TrackingConfig::default());
+        std::fs::write(&path, "[tracking]\nfeaturs = 900\n").unwrap();
+        let message = PipelineConfig::load(&path).unwrap_err().to_string();
+        assert!(message.contains("featurs"), "{message}");
+        std::fs::write(&path, "[tracking]\nfeatures = 10\n").unwrap();
+        let message = PipelineConfig::load(&path).unwrap_err().to_string();
+        assert!(message.contains("tracking.features"), "{message}");
+    }
+}

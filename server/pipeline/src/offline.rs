@@ -1,0 +1,291 @@
+//! A recorded or simulated sequence through the same frame pipeline as live robots (the frames
+//! are encoded as the SDK player sends them and decoded, detected and tracked by
+//! [`FrameProcessor`]), without the network, deterministically: `vsgraphs-server offline` and
+//! `vsgraphs-eval scenario` run it.
+
+use crate::config::{PipelineConfig, DEFAULT_MAX_FRAME_BYTES};
+use crate::processor::FrameProcessor;
+use crate::validate::FrameHeader;
+use std::path::Path;
+use std::time::{Duration, Instant};
+use vsgraphs_datasets::{load_frame, Dataset, Trajectory};
+use vsgraphs_proto::api::{MapView, TrackingState, TrajectoryPose};
+use vsgraphs_proto::{CameraModel, ColourImage, DepthEncoding, DepthImage, Message, RgbdFrame};
+
+/// The robot id offline frames carry.
+pub const OFFLINE_ROBOT: &str = "offline";
+
+/// What an offline run did.
+#[derive(Debug, Clone, Default)]
+pub struct OfflineSummary {
+    pub frames: usize,
+    /// Frames refused by the pipeline or whose files could not be read, with the reason.
+    pub skipped: Vec<(u64, String)>,
+    pub tracked: usize,
+    pub untracked: usize,
+    pub maps: usize,
+    pub keyframes: usize,
+    pub map_points: usize,
+    pub markers: usize,
+    /// Every map of the Atlas at the end of the run.
+    pub map_views: Vec<MapView>,
+    /// Tracking events (map started, lost, relocalised) with the frame's stamp in seconds.
+    pub events: Vec<(f64, String)>,
+    /// Per-frame times, ms: whole pipeline, decoding, marker detection, ORB features, tracking,
+    /// local mapping.
+    pub pipeline_ms: Vec<f64>,
+    pub decode_ms: Vec<f64>,
+    pub detection_ms: Vec<f64>,
+    pub features_ms: Vec<f64>,
+    pub tracking_ms: Vec<f64>,
+    pub mapping_ms: Vec<f64>,
+    pub local_ba_ms: Vec<f64>,
+    pub elapsed: Duration,
+}
+
+/// Median of a list of times (0 when empty).
+pub fn median(values: &[f64]) -> f64 {
+    let mut v = values.to_vec();
+    v.sort_by(f64::total_cmp);
+    match v.len() {
+        0 => 0.0,
+        n if n % 2 == 1 => v[n / 2],
+        n => 0.5 * (v[n / 2 - 1] + v[n / 2]),
+    }
+}
+
+/// The `q`-quantile (0..=1) of `values` by the nearest rank; 0 when there are none.
+pub fn quantile(values: &[f64], q: f64) -> f64 {
+    let mut v = values.to_vec();
+    v.sort_by(f64::total_cmp);
+    match v.len() {
+        0 => 0.0,
+        n => v[((q.clamp(0.0, 1.0) * n as f64).ceil() as usize).clamp(1, n) - 1],
+    }
+}
+
+/// One frame as a robot would send it, with its source's stamp.
+pub struct OfflineFrame {
+    pub timestamp_ns: u64,
+    pub colour: ColourImage,
+    pub depth: DepthImage,
+}
+
+/// A run's tracked frames, oldest first, two ways.
+#[derive(Clone, Debug, Default)]
+pub struct Trajectories {
+    /// Each frame's pose moved with its reference keyframe as the map was adjusted after it was
+    /// tracked: the best estimate at the end, and what `--trajectory` writes and the API serves
+    /// (ORB-SLAM writes its trajectory files the same way).
+    pub refined: Vec<TrajectoryPose>,
+    /// Each frame's pose as tracking gave it at the time (what a robot was told live).
+    pub as_tracked: Vec<TrajectoryPose>,
+}
+
+/// Runs `dataset` through the pipeline; `progress(done, total)` is called after every frame.
+/// Returns the summary and every tracked pose.
+pub fn run(
+    config: &PipelineConfig,
+    dataset: &Dataset,
+    limit: Option<usize>,
+    progress: impl FnMut(usize, usize),
+) -> anyhow::Result<(OfflineSummary, Trajectories)> {
+    let total = limit.map_or(dataset.frames.len(), |l| l.min(dataset.frames.len()));
+    let frames = dataset.frames.iter().take(total).map(|files| {
+        load_frame(files, DepthEncoding::Rvl, dataset.depth_registration).map(
+            |(colour, depth, _)| OfflineFrame {
+                timestamp_ns: files.timestamp_ns,
+                colour,
+                depth,
+            },
+        )
+    });
+    let source = FrameSource {
+        camera: &dataset.camera,
+        depth_scale: dataset.depth_scale,
+        total,
+    };
+    run_frames(config, source, frames, progress)
+}
+
+/// What every frame of a run shares.
+pub struct FrameSource<'a> {
+    pub camera: &'a CameraModel,
+    pub depth_scale: f64,
+    /// Frames expected (for progress).
+    pub total: usize,
+}
+
+/// Runs encoded frames (or the reasons they could not be read) through the pipeline, in order.
+/// Poses carry the frames' own stamps.
+pub fn run_frames(
+    config: &PipelineConfig,
+    source: FrameSource<'_>,
+    frames: impl Iterator<Item = Result<OfflineFrame, String>>,
+    mut progress: impl FnMut(usize, usize),
+) -> anyhow::Result<(OfflineSummary, Trajectories)> {
+    // Frames read from disk are held to the same size limit as a live robot's by default.
+    let mut processor =
+        FrameProcessor::new(&config.markers, &config.tracking, DEFAULT_MAX_FRAME_BYTES)?;
+    let started = Instant::now();
+    let total = source.total;
+    let mut summary = OfflineSummary::default();
+    let mut poses = Vec::new();
+    let mut anchors = Vec::new();
+    let mut previous: Option<FrameHeader> = None;
+    let mut first_ns = None;
+    for (sequence, frame) in frames.enumerate() {
+        let sequence = sequence as u64;
+        summary.frames += 1;
+        let OfflineFrame {
+            timestamp_ns: source_ns,
+            colour,
+            depth,
+        } = match frame {
+            Ok(frame) => frame,
+            Err(message) => {
+                summary.skipped.push((sequence, message));
+                continue;
+            }
+        };
+        // Stamps start at 1 ns past zero: 0 means "missing" on the wire.
+        let first = *first_ns.get_or_insert(source_ns);
+        let timestamp_ns = source_ns.saturating_sub(first) + 1;
+        let bytes = RgbdFrame {
+            robot_id: OFFLINE_ROBOT.into(),
+            session_id: "offline".into(),
+            sequence,
+            timestamp_ns,
+            camera: Some(source.camera.clone()),
+            depth_scale: source.depth_scale,
+            colour: Some(colour),
+            depth: Some(depth),
+            odometry: None,
+            imu: vec![],
+        }
+        .encode_to_vec();
+        let processed = match processor.process(OFFLINE_ROBOT, &bytes, previous.as_ref()) {
+            Ok(processed) => processed,
+            Err(rejection) => {
+                summary.skipped.push((
+                    sequence,
+                    format!("{}: {}", rejection.reason.code(), rejection.message),
+                ));
+                continue;
+            }
+        };
+        previous = Some(FrameHeader {
+            session_id: processed.session_id.clone(),
+            sequence,
+            timestamp_ns,
+        });
+        let ms = |d: Duration| d.as_secs_f64() * 1e3;
+        summary.pipeline_ms.push(ms(processed.processing));
+        summary.decode_ms.push(ms(processed.decode));
+        summary.detection_ms.push(ms(processed.detection));
+        if let Some(tracking) = &processed.tracking {
+            summary.maps = tracking.maps;
+            summary.keyframes = tracking.keyframes;
+            summary.map_points = tracking.map_points;
+            summary.markers = tracking.markers;
+            let pose = tracking.result.as_ref().and_then(|r| {
+                summary.features_ms.push(ms(r.times.features));
+                summary.tracking_ms.push(ms(r.times.tracking));
+                summary.mapping_ms.push(ms(r.times.mapping));
+                summary.local_ba_ms.push(ms(r.times.local_ba));
+                if let Some(event) = &r.event {
+                    summary
+                        .events
+                        .push((timestamp_ns as f64 * 1e-9, event.clone()));
+                }
+                r.world_from_camera.map(|p| (r.map, p, r.anchor))
+            });
+            match (tracking.state, pose) {
+                (TrackingState::Tracking, Some((map, pose, anchor))) => {
+                    summary.tracked += 1;
+                    poses.push(TrajectoryPose {
+                        timestamp_ns: source_ns,
+                        map: map as u32,
+                        world_from_camera: crate::model::api_pose(&pose),
+                    });
+                    anchors.push(anchor);
+                }
+                _ => summary.untracked += 1,
+            }
+            if let Some(error) = &tracking.error {
+                summary
+                    .events
+                    .push((timestamp_ns as f64 * 1e-9, format!("error: {error}")));
+            }
+        }
+        progress(summary.frames, total);
+    }
+    processor.flush_tracking()?;
+    if let Some(tracker) = processor.tracker() {
+        let end_ns = previous.as_ref().map_or(0, |p| p.timestamp_ns);
+        summary.map_views = tracker
+            .atlas()
+            .maps
+            .iter()
+            .enumerate()
+            .map(|(i, map)| crate::model::map_view(map, i, end_ns))
+            .collect();
+    }
+    // As the API does: each pose follows its anchor keyframe in its map's last snapshot.
+    let mut refined = poses.clone();
+    for (pose, anchor) in refined.iter_mut().zip(&anchors) {
+        let moved = anchor.as_ref().and_then(|a| {
+            crate::model::anchored_in_view(summary.map_views.get(pose.map as usize)?, a)
+        });
+        if let Some(p) = moved {
+            pose.world_from_camera = crate::model::api_pose(&p);
+        }
+    }
+    summary.elapsed = started.elapsed();
+    Ok((
+        summary,
+        Trajectories {
+            refined,
+            as_tracked: poses,
+        },
+    ))
+}
+
+/// Poses as a trajectory (stamps in seconds).
+pub fn trajectory(poses: &[TrajectoryPose]) -> Trajectory {
+    let mut trajectory = Trajectory::default();
+    for p in poses {
+        let pose = crate::model::se3_from_api(&p.world_from_camera);
+        trajectory.push(
+            p.timestamp_ns as f64 * 1e-9,
+            nalgebra::Isometry3::from_parts(pose.translation.into(), pose.rotation),
+        );
+    }
+    trajectory
+}
+
+/// Poses as a TUM trajectory file (`t x y z qx qy qz qw`, seconds).
+pub fn tum_text(poses: &[TrajectoryPose]) -> String {
+    trajectory(poses).to_tum()
+}
+
+/// Writes the poses of one map as a TUM file.
+pub fn write_tum(path: &Path, poses: &[TrajectoryPose]) -> std::io::Result<()> {
+    std::fs::write(path, tum_text(poses))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn quantiles_are_nearest_ranks() {
+        let ten: Vec<f64> = (1..=10).rev().map(f64::from).collect();
+        assert_eq!(quantile(&ten, 0.9), 9.0);
+        assert_eq!(quantile(&ten, 0.91), 10.0);
+        assert_eq!(quantile(&ten, 1.0), 10.0);
+        assert_eq!(quantile(&ten, 0.0), 1.0);
+        assert_eq!(quantile(&[], 0.5), 0.0);
+        assert_eq!(median(&ten), 5.5);
+    }
+}

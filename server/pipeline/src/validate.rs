@@ -1,0 +1,177 @@
+//! A frame's checks before its images are decoded: the protobuf, the robot id against the key,
+//! the header fields, the order of timestamps. Every failure is a [`Rejection`] with a reason
+//! code (counted per robot in the API) and a message a user can read.
+
+use vsgraphs_proto::{keys, Message, RgbdFrame};
+use vsgraphs_vision::decode::DecodeError;
+
+/// Why a frame was refused. The snake_case names are the codes counted per robot in the API.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord)]
+pub enum Reason {
+    /// Not a protobuf `RgbdFrame`.
+    Malformed,
+    TooLarge,
+    RobotIdMismatch,
+    MissingField,
+    BadCamera,
+    BadDepthScale,
+    BadTimestamp,
+    /// Timestamp not after the previous frame's in the same session.
+    TimestampNotIncreasing,
+    UnknownEncoding,
+    ColourDecode,
+    DepthDecode,
+    SizeMismatch,
+    Detection,
+}
+
+impl Reason {
+    pub fn code(self) -> &'static str {
+        match self {
+            Reason::Malformed => "malformed",
+            Reason::TooLarge => "too_large",
+            Reason::RobotIdMismatch => "robot_id_mismatch",
+            Reason::MissingField => "missing_field",
+            Reason::BadCamera => "bad_camera",
+            Reason::BadDepthScale => "bad_depth_scale",
+            Reason::BadTimestamp => "bad_timestamp",
+            Reason::TimestampNotIncreasing => "timestamp_not_increasing",
+            Reason::UnknownEncoding => "unknown_encoding",
+            Reason::ColourDecode => "colour_decode",
+            Reason::DepthDecode => "depth_decode",
+            Reason::SizeMismatch => "size_mismatch",
+            Reason::Detection => "detection",
+        }
+    }
+}
+
+/// A refused frame.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Rejection {
+    pub reason: Reason,
+    pub message: String,
+    /// Known when the protobuf could be read.
+    pub sequence: Option<u64>,
+}
+
+pub(crate) fn reject(
+    reason: Reason,
+    message: impl Into<String>,
+    sequence: Option<u64>,
+) -> Rejection {
+    Rejection {
+        reason,
+        message: message.into(),
+        sequence,
+    }
+}
+
+/// The header of a readable frame, for sequence and timestamp bookkeeping.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct FrameHeader {
+    pub session_id: String,
+    pub sequence: u64,
+    pub timestamp_ns: u64,
+}
+
+/// Decodes the protobuf and checks everything but the image contents.
+pub fn parse(robot_id: &str, bytes: &[u8], max_frame_bytes: usize) -> Result<RgbdFrame, Rejection> {
+    if bytes.len() > max_frame_bytes {
+        return Err(reject(
+            Reason::TooLarge,
+            format!(
+                "frame of {} bytes exceeds the {} allowed",
+                bytes.len(),
+                max_frame_bytes
+            ),
+            None,
+        ));
+    }
+    let frame = RgbdFrame::decode(bytes)
+        .map_err(|e| reject(Reason::Malformed, format!("not an RgbdFrame: {e}"), None))?;
+    let sequence = Some(frame.sequence);
+    if frame.robot_id != robot_id {
+        return Err(reject(
+            Reason::RobotIdMismatch,
+            format!(
+                "frame names robot {:?} but was published on {}",
+                frame.robot_id,
+                keys::frames(robot_id)
+            ),
+            sequence,
+        ));
+    }
+    if frame.session_id.is_empty() {
+        return Err(reject(
+            Reason::MissingField,
+            "session_id is empty",
+            sequence,
+        ));
+    }
+    if frame.timestamp_ns == 0 {
+        return Err(reject(Reason::BadTimestamp, "timestamp_ns is 0", sequence));
+    }
+    if !(frame.depth_scale.is_finite() && frame.depth_scale > 0.0) {
+        return Err(reject(
+            Reason::BadDepthScale,
+            format!(
+                "depth_scale {} is not a positive number of units per metre",
+                frame.depth_scale
+            ),
+            sequence,
+        ));
+    }
+    for (present, name) in [
+        (frame.camera.is_some(), "camera"),
+        (frame.colour.is_some(), "colour"),
+        (frame.depth.is_some(), "depth"),
+    ] {
+        if !present {
+            return Err(reject(
+                Reason::MissingField,
+                format!("{name} is missing"),
+                sequence,
+            ));
+        }
+    }
+    Ok(frame)
+}
+
+/// Refuses a frame of `previous`'s session whose timestamp is not after `previous`'s.
+pub fn check_order(frame: &RgbdFrame, previous: Option<&FrameHeader>) -> Result<(), Rejection> {
+    match previous {
+        Some(previous)
+            if previous.session_id == frame.session_id
+                && frame.timestamp_ns <= previous.timestamp_ns =>
+        {
+            Err(reject(
+                Reason::TimestampNotIncreasing,
+                format!(
+                    "timestamp {} ns is not after the previous frame's {} ns",
+                    frame.timestamp_ns, previous.timestamp_ns
+                ),
+                Some(frame.sequence),
+            ))
+        }
+        _ => Ok(()),
+    }
+}
+
+/// An image that would not decode, as a rejection: its reason follows the error, else `fallback`.
+pub(crate) fn decode_rejection(
+    error: DecodeError,
+    fallback: Reason,
+    sequence: Option<u64>,
+) -> Rejection {
+    let reason = match error {
+        DecodeError::UnknownColourEncoding(_)
+        | DecodeError::UnknownDepthEncoding(_)
+        | DecodeError::UnknownPixelFormat(_) => Reason::UnknownEncoding,
+        DecodeError::SizeMismatch { .. } | DecodeError::WrongLength { .. } => Reason::SizeMismatch,
+        DecodeError::Rvl(vsgraphs_proto::rvl::RvlError::SizeMismatch { .. }) => {
+            Reason::SizeMismatch
+        }
+        _ => fallback,
+    };
+    reject(reason, error.to_string(), sequence)
+}
