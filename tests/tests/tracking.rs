@@ -7,7 +7,7 @@ use vsgraphs_datasets::Trajectory;
 use vsgraphs_eval::metrics::{ape, match_and_align, Compare, Relation};
 use vsgraphs_eval::scenario::{self, ScenarioOptions, ScenarioRun};
 use vsgraphs_optim::{Pinhole, Se3};
-use vsgraphs_pipeline::PipelineConfig;
+use vsgraphs_pipeline::{MapService, PipelineConfig};
 use vsgraphs_sim::scenarios::Scenario;
 use vsgraphs_slam::{Tracker, TrackerConfig, TrackingState};
 use vsgraphs_tests::*;
@@ -38,6 +38,7 @@ fn run(
     config: TrackerConfig,
 ) -> Run {
     let mut tracker = Tracker::new(config).unwrap();
+    let mut maps = MapService::new();
     let mut estimate = Trajectory::default();
     let mut lost_frames = 0;
     let mut times = Vec::new();
@@ -45,6 +46,7 @@ fn run(
         let started = Instant::now();
         let result = tracker
             .track(
+                &mut maps,
                 (stamp * 1e9).round() as u64,
                 &camera,
                 &grey,
@@ -65,8 +67,12 @@ fn run(
     Run {
         estimate,
         lost_frames,
-        keyframes: tracker.atlas().maps.iter().map(|m| m.keyframes.len()).sum(),
-        maps: tracker.atlas().maps.len(),
+        keyframes: tracker
+            .maps()
+            .iter()
+            .map(|m| m.read().keyframes.len())
+            .sum(),
+        maps: tracker.maps().len(),
         median_ms: times[times.len() / 2],
     }
 }

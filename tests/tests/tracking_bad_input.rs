@@ -3,6 +3,7 @@
 //! panics, and the robot relocalises in its map when good frames come back.
 
 use vsgraphs_optim::Pinhole;
+use vsgraphs_pipeline::MapService;
 use vsgraphs_sim::scenarios::Scenario;
 use vsgraphs_sim::sequence::render_frame;
 use vsgraphs_sim::{Building, Renderer};
@@ -35,6 +36,7 @@ fn frames(count: usize) -> (Pinhole, Vec<RawFrame>, (u32, u32)) {
 
 struct Rig {
     tracker: Tracker,
+    maps: MapService,
     camera: Pinhole,
     size: (u32, u32),
 }
@@ -52,7 +54,14 @@ impl Rig {
         };
         let stamp = (stamp_s * 1e9).round() as u64;
         self.tracker
-            .track(stamp, &self.camera, &image, &depth, Vec::new())
+            .track(
+                &mut self.maps,
+                stamp,
+                &self.camera,
+                &image,
+                &depth,
+                Vec::new(),
+            )
             .expect("bad frames are tracking outcomes, not errors")
     }
 }
@@ -63,13 +72,14 @@ fn bad_frames_lose_track_and_good_ones_bring_it_back() {
     let n = (size.0 * size.1) as usize;
     let mut rig = Rig {
         tracker: Tracker::new(TrackerConfig::default()).unwrap(),
+        maps: MapService::new(),
         camera,
         size,
     };
     // A black frame before any map: still initialising, no map made from nothing.
     let result = rig.track(0.0, &vec![0; n], &vec![0; n]);
     assert_eq!(result.state, TrackingState::Initialising);
-    assert!(rig.tracker.atlas().maps.is_empty());
+    assert!(rig.tracker.maps().is_empty());
     for (t, grey, depth) in &frames[..20] {
         let r = rig.track(t + 1.0, grey, depth);
         assert_eq!(r.state, TrackingState::Tracking, "t={t}: {r:?}");
@@ -90,7 +100,7 @@ fn bad_frames_lose_track_and_good_ones_bring_it_back() {
     let back = rig.track(t0 + 0.06, &frames[21].1, &frames[21].2);
     assert_eq!(back.state, TrackingState::Tracking, "{back:?}");
     assert_eq!(back.event.as_deref(), Some("relocalised"));
-    assert_eq!(rig.tracker.atlas().maps.len(), 1);
+    assert_eq!(rig.tracker.maps().len(), 1);
 
     // A frame without any valid depth: its keypoints have no depth, so it is tracked on the
     // map's points by reprojection alone, or lost; either way it says which.
@@ -119,7 +129,7 @@ fn bad_frames_lose_track_and_good_ones_bring_it_back() {
     let restarted = rig.track(t0 + 61.0, &frames[30].1, &frames[30].2);
     assert_eq!(restarted.state, TrackingState::Tracking, "{restarted:?}");
     assert_eq!(restarted.event.as_deref(), Some("relocalised"));
-    assert_eq!(rig.tracker.atlas().maps.len(), 1);
+    assert_eq!(rig.tracker.maps().len(), 1);
 }
 
 #[test]
@@ -128,6 +138,7 @@ fn a_robot_that_never_comes_back_starts_a_new_map() {
     let n = (size.0 * size.1) as usize;
     let mut rig = Rig {
         tracker: Tracker::new(TrackerConfig::default()).unwrap(),
+        maps: MapService::new(),
         camera,
         size,
     };
@@ -143,7 +154,7 @@ fn a_robot_that_never_comes_back_starts_a_new_map() {
     // ...then waiting for a frame good enough to start a new map.
     let r = rig.track(t0 + 3.5, &vec![0; n], &vec![0; n]);
     assert_eq!(r.state, TrackingState::Initialising);
-    assert_eq!(rig.tracker.atlas().maps.len(), 1);
+    assert_eq!(rig.tracker.maps().len(), 1);
     // Somewhere the map has never seen (a textured wall 2 m away, blurred noise):
     // relocalisation fails, and as more than 3 s have passed, a second map starts.
     let (width, height) = (size.0 as usize, size.1 as usize);
@@ -168,5 +179,5 @@ fn a_robot_that_never_comes_back_starts_a_new_map() {
         r.event.as_deref().unwrap_or("").contains("map 1 started"),
         "{r:?}"
     );
-    assert_eq!(rig.tracker.atlas().maps.len(), 2);
+    assert_eq!(rig.tracker.maps().len(), 2);
 }

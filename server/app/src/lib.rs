@@ -21,10 +21,13 @@ use std::net::SocketAddr;
 use std::sync::Arc;
 use tokio::sync::oneshot;
 use tokio::task::JoinHandle;
+use vsgraphs_pipeline::MapService;
 
 /// A running server. Dropping it without [`Server::stop`] leaves its tasks to the runtime.
 pub struct Server {
     pub registry: Arc<Registry>,
+    /// Every map of the server, each with its writer.
+    pub maps: MapService,
     http_addr: SocketAddr,
     ingest: Ingest,
     session: zenoh::Session,
@@ -37,10 +40,12 @@ impl Server {
     pub async fn start(config: Config) -> anyhow::Result<Self> {
         config.validate()?;
         // Fail now, not in the first robot's worker, if the marker dictionary cannot load.
+        let maps = MapService::new();
         vsgraphs_pipeline::FrameProcessor::new(
             &config.markers,
             &config.tracking,
             config.ingest.max_frame_bytes,
+            maps.clone(),
         )
         .context("setting up marker detection")?;
         let registry = Arc::new(Registry::new(
@@ -57,7 +62,7 @@ impl Server {
             .with_context(|| format!("binding HTTP to {}", config.http.listen))?;
         let http_addr = listener.local_addr()?;
         let config = Arc::new(config);
-        let ingest = Ingest::start(&session, registry.clone(), config.clone())
+        let ingest = Ingest::start(&session, registry.clone(), config.clone(), maps.clone())
             .await
             .map_err(|e| anyhow::anyhow!("subscribing on zenoh: {e}"))?;
         let app = api::router(registry.clone()).merge(web::router());
@@ -72,6 +77,7 @@ impl Server {
         tracing::info!(%http_addr, zenoh = ?config.zenoh.listen, "server started");
         Ok(Self {
             registry,
+            maps,
             http_addr,
             ingest,
             session,
@@ -85,10 +91,11 @@ impl Server {
         self.http_addr
     }
 
-    /// Closes zenoh, drains the robots' queues, and stops HTTP.
+    /// Closes zenoh, drains the robots' queues, stops the maps' writers, and stops HTTP.
     pub async fn stop(self) -> anyhow::Result<()> {
         let Server {
             ingest,
+            maps,
             session,
             http,
             stop_http,
@@ -98,7 +105,11 @@ impl Server {
             .close()
             .await
             .map_err(|e| anyhow::anyhow!("closing zenoh: {e}"))?;
-        tokio::task::spawn_blocking(move || ingest.stop()).await?;
+        tokio::task::spawn_blocking(move || {
+            ingest.stop();
+            maps.stop();
+        })
+        .await?;
         let _ = stop_http.send(());
         http.await??;
         Ok(())

@@ -3,7 +3,7 @@
 use criterion::{criterion_group, criterion_main, Criterion};
 use nalgebra::{Isometry3, Translation3, UnitQuaternion};
 use vsgraphs_pipeline::config::{MarkerConfig, TrackingConfig, DEFAULT_MAX_FRAME_BYTES};
-use vsgraphs_pipeline::FrameProcessor;
+use vsgraphs_pipeline::{FrameProcessor, MapService};
 use vsgraphs_proto::encode;
 use vsgraphs_proto::{DepthEncoding, Message, PixelFormat, RgbdFrame};
 use vsgraphs_vision::camera::PinholeCamera;
@@ -44,6 +44,7 @@ fn ingest(c: &mut Criterion) {
         &MarkerConfig::default(),
         &TrackingConfig::default(),
         DEFAULT_MAX_FRAME_BYTES,
+        MapService::new(),
     )
     .unwrap();
     assert_eq!(

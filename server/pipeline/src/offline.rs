@@ -4,6 +4,7 @@
 //! `vsgraphs-eval scenario` run it.
 
 use crate::config::{PipelineConfig, DEFAULT_MAX_FRAME_BYTES};
+use crate::maps::MapService;
 use crate::processor::FrameProcessor;
 use crate::validate::FrameHeader;
 use std::path::Path;
@@ -125,8 +126,12 @@ pub fn run_frames(
     mut progress: impl FnMut(usize, usize),
 ) -> anyhow::Result<(OfflineSummary, Trajectories)> {
     // Frames read from disk are held to the same size limit as a live robot's by default.
-    let mut processor =
-        FrameProcessor::new(&config.markers, &config.tracking, DEFAULT_MAX_FRAME_BYTES)?;
+    let mut processor = FrameProcessor::new(
+        &config.markers,
+        &config.tracking,
+        DEFAULT_MAX_FRAME_BYTES,
+        MapService::new(),
+    )?;
     let started = Instant::now();
     let total = source.total;
     let mut summary = OfflineSummary::default();
@@ -221,16 +226,11 @@ pub fn run_frames(
         progress(summary.frames, total);
     }
     processor.flush_tracking()?;
-    if let Some(tracker) = processor.tracker() {
-        let end_ns = previous.as_ref().map_or(0, |p| p.timestamp_ns);
-        summary.map_views = tracker
-            .atlas()
-            .maps
-            .iter()
-            .enumerate()
-            .map(|(i, map)| crate::model::map_view(map, i, end_ns))
-            .collect();
-    }
+    summary.map_views = processor
+        .map_views()
+        .into_iter()
+        .map(|view| (*view).clone())
+        .collect();
     // As the API does: each pose follows its anchor keyframe in its map's last snapshot.
     let mut refined = poses.clone();
     for (pose, anchor) in refined.iter_mut().zip(&anchors) {

@@ -4,6 +4,7 @@
 //! a [`Rejection`] with a reason code and a readable message.
 
 use crate::config::{load_dictionary, MarkerConfig, TrackingConfig};
+use crate::maps::MapService;
 use crate::validate::{self, decode_rejection, reject, FrameHeader, Reason, Rejection};
 use std::sync::Arc;
 use std::time::{Duration, Instant};
@@ -62,13 +63,17 @@ pub struct FrameProcessor {
     estimator: Option<PoseEstimator>,
     /// The robot's camera tracking, when enabled.
     tracker: Option<Tracker>,
+    /// Where the robot's maps live.
+    maps: MapService,
 }
 
 impl FrameProcessor {
+    /// Frame processing for one robot, whose maps `maps` holds.
     pub fn new(
         settings: &MarkerConfig,
         tracking: &TrackingConfig,
         max_frame_bytes: usize,
+        maps: MapService,
     ) -> Result<Self, SetupError> {
         let dictionary = load_dictionary(settings)?;
         let detector = MarkerDetector::new(dictionary, settings.corner_refinement)?;
@@ -83,13 +88,29 @@ impl FrameProcessor {
             max_frame_bytes,
             estimator: None,
             tracker,
+            maps,
         })
     }
 
-    /// Applies tracking's pending background work (the last local BA), so that the maps are
-    /// final: for the end of an offline run.
+    /// Lands the active map's pending work (the last local BA), so that the maps are final:
+    /// for the end of an offline run.
     pub fn flush_tracking(&mut self) -> Result<(), vsgraphs_slam::TrackError> {
-        self.tracker.as_mut().map_or(Ok(()), Tracker::flush)
+        match self.tracker.as_mut() {
+            Some(tracker) => tracker.flush(&mut self.maps),
+            None => Ok(()),
+        }
+    }
+
+    /// The latest snapshot of each of the robot's maps, in the robot's order.
+    pub fn map_views(&self) -> Vec<Arc<MapView>> {
+        let Some(tracker) = &self.tracker else {
+            return Vec::new();
+        };
+        tracker
+            .maps()
+            .iter()
+            .filter_map(|m| self.maps.snapshot(m.id()))
+            .collect()
     }
 
     /// The robot's tracker, when tracking is on.
@@ -136,6 +157,7 @@ impl FrameProcessor {
             settings,
             estimator,
             tracker,
+            maps,
             ..
         } = self;
         let beside_features = settings.beside_features;
@@ -170,7 +192,7 @@ impl FrameProcessor {
             if previous.is_some_and(|p| p.session_id != frame.session_id) {
                 tracker.restart();
             }
-            track(tracker, frame.timestamp_ns, extracted, sightings)
+            track(tracker, maps, extracted, sightings)
         });
         Ok(Processed {
             session_id: frame.session_id,
@@ -266,39 +288,45 @@ fn extract(
     Extracted::Features(tracker.extract(timestamp_ns, &pinhole, grey, depth))
 }
 
-/// Tracks one decoded frame whose features are extracted.
+/// Tracks one decoded frame whose features are extracted; `maps` writes the robot's maps.
 fn track(
     tracker: &mut Tracker,
-    timestamp_ns: u64,
+    maps: &mut MapService,
     extracted: Extracted,
     sightings: Vec<MarkerSighting>,
 ) -> FrameTracking {
-    let summary = |tracker: &Tracker, state, result: Option<FrameResult>, error| {
-        let map = tracker.atlas().active();
-        let changed = result.as_ref().is_some_and(|r| r.keyframe.is_some());
-        let map_view = map.filter(|_| changed).map(|m| {
-            let index = tracker.atlas().active_index().unwrap_or(0);
-            Arc::new(crate::model::map_view(m, index, timestamp_ns))
-        });
-        FrameTracking {
-            state,
-            result,
-            maps: tracker.atlas().maps.len(),
-            keyframes: map.map_or(0, |m| m.live_keyframes()),
-            map_points: map.map_or(0, |m| m.live_points()),
-            markers: map.map_or(0, |m| m.markers.len()),
-            error,
-            map_view,
-        }
-    };
+    let summary =
+        |tracker: &Tracker, maps: &MapService, state, result: Option<FrameResult>, error| {
+            let active = tracker.active_map();
+            let (keyframes, map_points, markers) = active.map_or((0, 0, 0), |(_, m)| {
+                let map = m.read();
+                (map.live_keyframes(), map.live_points(), map.markers.len())
+            });
+            // A keyframe changed the map: its writer has published the map as it left it.
+            let changed = result.as_ref().is_some_and(|r| r.keyframe.is_some());
+            let map_view = active
+                .filter(|_| changed)
+                .and_then(|(_, m)| maps.snapshot(m.id()));
+            FrameTracking {
+                state,
+                result,
+                maps: tracker.maps().len(),
+                keyframes,
+                map_points,
+                markers,
+                error,
+                map_view,
+            }
+        };
     let extracted = match extracted {
         Extracted::Features(extracted) => extracted,
         Extracted::UnsupportedCamera => {
-            return summary(tracker, TrackingState::UnsupportedCamera, None, None)
+            return summary(tracker, maps, TrackingState::UnsupportedCamera, None, None)
         }
     };
     // On an error the frame has no pose (it counts as untracked); the state is the tracker's.
-    let tracked = extracted.and_then(|extracted| tracker.track_extracted(extracted, sightings));
+    let tracked =
+        extracted.and_then(|extracted| tracker.track_extracted(maps, extracted, sightings));
     let (result, error) = match tracked {
         Ok(result) => (Some(result), None),
         Err(e) => (None, Some(e.to_string())),
@@ -308,8 +336,9 @@ fn track(
         vsgraphs_slam::TrackingState::Tracking => TrackingState::Tracking,
         vsgraphs_slam::TrackingState::Lost => TrackingState::Lost,
     };
-    summary(tracker, state, result, error)
+    summary(tracker, maps, state, result, error)
 }
+
 /// A marker's pose estimate as the API reports it.
 pub fn marker_pose(estimate: &MarkerPoseEstimate) -> MarkerPose {
     let q = estimate.camera_from_marker.rotation.coords;

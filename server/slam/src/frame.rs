@@ -1,7 +1,7 @@
 //! A frame as tracking sees it: ORB keypoints with depth and their descriptors, bucketed in a
 //! grid so that the keypoints near a predicted pixel are found without scanning them all.
 
-use crate::markers::MarkerSighting;
+use crate::sighting::MarkerSighting;
 use nalgebra::Vector3;
 use vsgraphs_optim::{DepthResidual, Pinhole, VirtualStereo};
 use vsgraphs_vision::orb::Extraction;

@@ -1,23 +1,33 @@
-//! RGB-D SLAM for one robot: ORB frames, tracking against a map of keyframes and map points,
-//! keyframe insertion with local bundle adjustment, and an Atlas that starts a new map when a
-//! robot cannot be relocalised.
+//! RGB-D SLAM: ORB frames, a tracker per robot that places each frame in a map of keyframes and
+//! map points, and local mapping (keyframe insertion, point creation and culling, local bundle
+//! adjustment) as a map's writer runs it. A robot that cannot be relocalised starts a new map.
 //!
 //! Frames are in OpenCV's camera frame; poses are `world_from_camera` ([`Se3`]) in the frame of
 //! the map that holds them. Depends on the vision crate (ORB) and the optimiser, never on the
-//! network or the async runtime: the server runs a [`Tracker`] on each robot's worker thread, and
-//! `vsgraphs-server offline` runs the same code without the network.
+//! network or the async runtime: the pipeline runs a [`Tracker`] on each robot's worker thread
+//! and each map's writer on a thread of its own ([`atlas::MapWriter`]).
+//!
+//! Modules, from the bottom: [`sighting`] and [`frame`] (what one frame saw), [`map`] (the
+//! arenas), [`matcher`], then the work on maps: [`markers`], [`mapping`], [`triangulation`],
+//! [`local_mapping`] (a map's writer), [`atlas`] (maps shared between writer and trackers) and
+//! [`tracking`].
 
+pub mod atlas;
 pub mod frame;
+pub mod local_mapping;
 pub mod map;
 pub mod mapping;
 pub mod markers;
 pub mod matcher;
+pub mod sighting;
 pub mod tracking;
 pub mod triangulation;
 
+pub use atlas::{InlineWriter, MapId, MapWriter, SharedMap};
 pub use frame::{Descriptor, Frame, Keypoint, Rig};
-pub use map::{Anchor, Atlas, KeyFrame, KeyFrameId, Map, MapPoint, MapPointId};
-pub use markers::{MapMarker, MarkerSighting};
+pub use local_mapping::{LocalMapper, MapReply, MapRequest, MappingConfig};
+pub use map::{Anchor, KeyFrame, KeyFrameId, Map, MapMarker, MapPoint, MapPointId};
+pub use sighting::MarkerSighting;
 pub use tracking::{
     ExtractedFrame, FrameResult, StageTimes, TrackError, Tracker, TrackerConfig, TrackingState,
 };

@@ -1,11 +1,11 @@
 //! The map of one tracking session: keyframes and map points in arenas indexed by typed ids,
 //! with the observations that tie them. Culled points stay in the arena marked bad, so ids
-//! never dangle. The [`Atlas`] holds every map a robot has started.
+//! never dangle.
 
 use crate::frame::{hamming, Descriptor, Frame, Rig};
-use crate::markers::MapMarker;
 use nalgebra::Vector3;
 use std::collections::BTreeMap;
+use vsgraphs_optim::factors::marker::marker_corners;
 use vsgraphs_optim::Se3;
 
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, PartialOrd, Ord)]
@@ -390,19 +390,20 @@ fn distinctive(descriptors: &[Descriptor]) -> Descriptor {
     descriptors[best.1]
 }
 
-/// Every map a robot has started; the last one is active.
-#[derive(Clone, Debug, Default)]
-pub struct Atlas {
-    pub maps: Vec<Map>,
+/// A mapped marker.
+#[derive(Clone, Debug, PartialEq)]
+pub struct MapMarker {
+    pub id: i32,
+    pub side_m: f64,
+    pub world_from_marker: Se3,
+    /// Keyframes that saw it, with the index of the sighting in the keyframe's frame.
+    pub observations: Vec<(KeyFrameId, usize)>,
 }
 
-impl Atlas {
-    pub fn active(&self) -> Option<&Map> {
-        self.maps.last()
-    }
-
-    pub fn active_index(&self) -> Option<usize> {
-        self.maps.len().checked_sub(1)
+impl MapMarker {
+    /// Its corners in the world, in sighting order.
+    pub fn corners_in_world(&self) -> [nalgebra::Vector3<f64>; 4] {
+        marker_corners(self.side_m).map(|c| self.world_from_marker.transform_point(&c))
     }
 }
 

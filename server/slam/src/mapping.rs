@@ -782,7 +782,7 @@ mod tests {
         let (mut map, _) = six_views();
         map.markers.insert(
             7,
-            crate::markers::MapMarker {
+            crate::map::MapMarker {
                 id: 7,
                 side_m: 0.2,
                 world_from_marker: Se3::identity(),

@@ -6,74 +6,11 @@
 //! known world position), and a lost robot that sees a mapped marker has its pose at once.
 
 use crate::frame::Rig;
-use crate::map::{KeyFrameId, Map};
-use nalgebra::Vector2;
-use vsgraphs_optim::factors::marker::marker_corners;
+use crate::map::{KeyFrameId, Map, MapMarker};
+use crate::sighting::MarkerSighting;
 use vsgraphs_optim::pose_only::{chi2, Measurement, PoseObservation};
 use vsgraphs_optim::Se3;
-use vsgraphs_vision::aruco::Detection;
-use vsgraphs_vision::pose::MarkerPoseEstimate;
 
-/// One marker as one frame saw it.
-#[derive(Clone, Debug, PartialEq)]
-pub struct MarkerSighting {
-    pub id: i32,
-    /// Printed side length, metres.
-    pub side_m: f64,
-    /// Detected corners (rectified pixels) in ArUco's order: top-left, top-right, bottom-right,
-    /// bottom-left.
-    pub corners: [Vector2<f64>; 4],
-    /// The detector's pose, when it is trustworthy (see [`MarkerSighting::from_detection`]);
-    /// a marker is only mapped, and a lost robot only placed, from one.
-    pub camera_from_marker: Option<Se3>,
-}
-
-impl MarkerSighting {
-    /// A detection and the detector's pose of it. The pose is kept only when the depth image
-    /// agreed with its distance and its corners reproject within [`MAX_POSE_REPROJECTION_PX`]:
-    /// a small marker's corners alone fix its distance poorly.
-    pub fn from_detection(
-        detection: &Detection,
-        side_m: f64,
-        estimate: Option<&MarkerPoseEstimate>,
-    ) -> Self {
-        Self {
-            id: detection.id,
-            side_m,
-            corners: detection
-                .corners
-                .map(|[x, y]| Vector2::new(f64::from(x), f64::from(y))),
-            camera_from_marker: estimate
-                .filter(|e| e.used_depth && e.reprojection_error_px <= MAX_POSE_REPROJECTION_PX)
-                .map(|e| {
-                    Se3::new(
-                        e.camera_from_marker.rotation,
-                        e.camera_from_marker.translation.vector,
-                    )
-                }),
-        }
-    }
-}
-
-/// A mapped marker.
-#[derive(Clone, Debug, PartialEq)]
-pub struct MapMarker {
-    pub id: i32,
-    pub side_m: f64,
-    pub world_from_marker: Se3,
-    /// Keyframes that saw it, with the index of the sighting in the keyframe's frame.
-    pub observations: Vec<(KeyFrameId, usize)>,
-}
-
-impl MapMarker {
-    /// Its corners in the world, in sighting order.
-    pub fn corners_in_world(&self) -> [nalgebra::Vector3<f64>; 4] {
-        marker_corners(self.side_m).map(|c| self.world_from_marker.transform_point(&c))
-    }
-}
-
-/// Largest RMS corner reprojection error of a detector pose that maps a marker, pixels.
-pub const MAX_POSE_REPROJECTION_PX: f64 = 1.0;
 /// Farthest a marker may be to be mapped from a detector pose, metres: farther, it is too few
 /// pixels wide for its orientation to be known.
 pub const MAX_MAPPING_DISTANCE_M: f64 = 2.5;
@@ -232,7 +169,9 @@ mod tests {
     use super::*;
     use crate::frame::tests::rig;
     use crate::frame::Frame;
+    use nalgebra::Vector2;
     use nalgebra::{UnitQuaternion, Vector3};
+    use vsgraphs_optim::factors::marker::marker_corners;
 
     fn sighting(world_from_camera: &Se3, world_from_marker: &Se3, id: i32) -> MarkerSighting {
         let camera = rig().camera;

@@ -14,6 +14,7 @@ use std::sync::atomic::Ordering;
 use std::sync::{Arc, Mutex};
 use std::thread::JoinHandle;
 use std::time::Duration;
+use vsgraphs_pipeline::MapService;
 use vsgraphs_pipeline::{FrameHeader, FrameProcessor};
 use vsgraphs_proto::api::{self, FrameDetections, Presence};
 use vsgraphs_proto::keys;
@@ -29,6 +30,7 @@ pub struct Ingest {
 struct Workers {
     registry: Arc<Registry>,
     config: Arc<Config>,
+    maps: MapService,
     handles: Mutex<Vec<JoinHandle<()>>>,
 }
 
@@ -42,9 +44,10 @@ impl Workers {
         if created {
             let worker_entry = entry.clone();
             let config = self.config.clone();
+            let maps = self.maps.clone();
             let spawned = std::thread::Builder::new()
                 .name(format!("robot-{robot_id}"))
-                .spawn(move || run_worker(worker_entry, &config));
+                .spawn(move || run_worker(worker_entry, &config, maps));
             match spawned {
                 Ok(handle) => self
                     .handles
@@ -61,15 +64,18 @@ impl Workers {
 }
 
 impl Ingest {
-    /// Subscribes to every robot's frames and liveliness on `session`.
+    /// Subscribes to every robot's frames and liveliness on `session`; robots' maps go to
+    /// `maps`.
     pub async fn start(
         session: &zenoh::Session,
         registry: Arc<Registry>,
         config: Arc<Config>,
+        maps: MapService,
     ) -> zenoh::Result<Self> {
         let workers = Arc::new(Workers {
             registry: registry.clone(),
             config,
+            maps,
             handles: Mutex::new(Vec::new()),
         });
         let frame_workers = workers.clone();
@@ -170,13 +176,14 @@ impl Continuity {
     }
 }
 
-fn run_worker(robot: Arc<RobotEntry>, config: &Config) {
+fn run_worker(robot: Arc<RobotEntry>, config: &Config, maps: MapService) {
     let span = tracing::info_span!("robot", robot_id = robot.robot_id);
     let _entered = span.enter();
     let mut processor = match FrameProcessor::new(
         &config.markers,
         &config.tracking,
         config.ingest.max_frame_bytes,
+        maps,
     ) {
         Ok(processor) => processor,
         Err(e) => {

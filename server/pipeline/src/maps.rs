@@ -1,0 +1,272 @@
+//! The map service: every map of the server, each with one writer thread, and the latest
+//! snapshot of each for readers.
+//!
+//! A map's writer is the only code that changes it. Robots' workers hand it what tracking
+//! decided (a map to start, a keyframe to insert, work to land: [`MapRequest`]) and wait for the
+//! answer, so a robot's frames are mapped in order and a run gives the same map live and
+//! offline. The writer runs local mapping on the map now; loop closing and the S-Graph join it
+//! there. After each request it publishes a snapshot ([`MapView`]) that readers (the API, the
+//! page, later the store) take without ever waiting for a writer. Trackers read the map itself
+//! between requests ([`SharedMap`]).
+
+use crate::model;
+use std::any::Any;
+use std::collections::BTreeMap;
+use std::panic::{catch_unwind, AssertUnwindSafe};
+use std::sync::atomic::{AtomicU32, Ordering};
+use std::sync::{mpsc, Arc, Mutex, MutexGuard};
+use std::thread::JoinHandle;
+use vsgraphs_proto::api::MapView;
+use vsgraphs_slam::{
+    LocalMapper, Map, MapId, MapReply, MapRequest, MapWriter, MappingConfig, SharedMap, TrackError,
+};
+
+/// Every map of the server. Cloning gives another handle to the same service.
+#[derive(Clone, Default)]
+pub struct MapService {
+    inner: Arc<Inner>,
+}
+
+#[derive(Default)]
+struct Inner {
+    next_id: AtomicU32,
+    maps: Mutex<BTreeMap<MapId, Arc<MapEntry>>>,
+}
+
+/// One map: the map, its writer's queue and thread, its latest snapshot.
+struct MapEntry {
+    map: Arc<SharedMap>,
+    commands: Mutex<Option<mpsc::Sender<Command>>>,
+    snapshot: Arc<Mutex<Arc<MapView>>>,
+    thread: Mutex<Option<JoinHandle<()>>>,
+}
+
+/// A request with where to send its answer.
+struct Command {
+    request: MapRequest,
+    reply: mpsc::SyncSender<Result<MapReply, Failure>>,
+}
+
+/// Why a request has no reply: an error, or a panic in the writer, handed back to the robot's
+/// worker so that it is counted there like any other panic in a frame's processing.
+enum Failure {
+    Error(TrackError),
+    Panic(Box<dyn Any + Send>),
+}
+
+fn lock<T>(mutex: &Mutex<T>) -> MutexGuard<'_, T> {
+    // A panic elsewhere must not take the service down with it.
+    mutex
+        .lock()
+        .unwrap_or_else(|poisoned| poisoned.into_inner())
+}
+
+impl MapService {
+    pub fn new() -> Self {
+        Self::default()
+    }
+
+    /// The latest snapshot of a map.
+    pub fn snapshot(&self, id: MapId) -> Option<Arc<MapView>> {
+        let entry = lock(&self.inner.maps).get(&id).cloned()?;
+        let snapshot = lock(&entry.snapshot).clone();
+        Some(snapshot)
+    }
+
+    /// How many maps the server holds.
+    pub fn len(&self) -> usize {
+        lock(&self.inner.maps).len()
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
+
+    /// Stops every writer once it has answered what is queued, and waits for it. Maps stay
+    /// readable; requests made afterwards fail.
+    pub fn stop(&self) {
+        let entries: Vec<_> = lock(&self.inner.maps).values().cloned().collect();
+        for entry in &entries {
+            lock(&entry.commands).take();
+        }
+        for entry in entries {
+            if let Some(thread) = lock(&entry.thread).take() {
+                let _ = thread.join();
+            }
+        }
+    }
+
+    fn entry(&self, id: MapId) -> Result<Arc<MapEntry>, TrackError> {
+        lock(&self.inner.maps)
+            .get(&id)
+            .cloned()
+            .ok_or(TrackError::UnknownMap(id))
+    }
+}
+
+impl Drop for Inner {
+    fn drop(&mut self) {
+        // The last handle is gone: writers finish what is queued and end.
+        let maps = std::mem::take(self.maps.get_mut().unwrap_or_else(|p| p.into_inner()));
+        for entry in maps.values() {
+            lock(&entry.commands).take();
+        }
+        for entry in maps.values() {
+            if let Some(thread) = lock(&entry.thread).take() {
+                let _ = thread.join();
+            }
+        }
+    }
+}
+
+impl MapWriter for MapService {
+    fn create_map(
+        &mut self,
+        settings: &MappingConfig,
+        label: usize,
+    ) -> Result<Arc<SharedMap>, TrackError> {
+        let id = MapId(self.inner.next_id.fetch_add(1, Ordering::Relaxed));
+        let map = Arc::new(SharedMap::new(id));
+        let snapshot = Arc::new(Mutex::new(Arc::new(model::map_view(
+            &Map::default(),
+            label,
+            0,
+        ))));
+        let (sender, commands) = mpsc::channel();
+        let writer = Writer {
+            map: map.clone(),
+            mapper: LocalMapper::new(settings.clone()),
+            label,
+            snapshot: snapshot.clone(),
+        };
+        let thread = std::thread::Builder::new()
+            .name(format!("map-{}", id.0))
+            .spawn(move || writer.run(commands))
+            .map_err(|e| TrackError::Writer(format!("cannot start the map's writer: {e}")))?;
+        let entry = MapEntry {
+            map: map.clone(),
+            commands: Mutex::new(Some(sender)),
+            snapshot,
+            thread: Mutex::new(Some(thread)),
+        };
+        lock(&self.inner.maps).insert(id, Arc::new(entry));
+        Ok(map)
+    }
+
+    fn request(&mut self, map: &SharedMap, request: MapRequest) -> Result<MapReply, TrackError> {
+        let entry = self.entry(map.id())?;
+        if !std::ptr::eq(entry.map.as_ref(), map) {
+            // A map of another service that happens to share the id.
+            return Err(TrackError::UnknownMap(map.id()));
+        }
+        let (reply, answer) = mpsc::sync_channel(1);
+        let sent = lock(&entry.commands)
+            .as_ref()
+            .is_some_and(|commands| commands.send(Command { request, reply }).is_ok());
+        if !sent {
+            return Err(TrackError::Writer("the map's writer has stopped".into()));
+        }
+        match answer.recv() {
+            Ok(Ok(reply)) => Ok(reply),
+            Ok(Err(Failure::Error(e))) => Err(e),
+            Ok(Err(Failure::Panic(payload))) => std::panic::resume_unwind(payload),
+            Err(_) => Err(TrackError::Writer(
+                "the map's writer stopped before answering".into(),
+            )),
+        }
+    }
+}
+
+/// A map's writer thread: its local mapping and where it publishes snapshots.
+struct Writer {
+    map: Arc<SharedMap>,
+    mapper: LocalMapper,
+    label: usize,
+    snapshot: Arc<Mutex<Arc<MapView>>>,
+}
+
+impl Writer {
+    fn run(mut self, commands: mpsc::Receiver<Command>) {
+        let span = tracing::info_span!("map", id = self.map.id().0);
+        let _entered = span.enter();
+        for Command { request, reply } in commands {
+            let outcome = catch_unwind(AssertUnwindSafe(|| self.handle(request)));
+            let answer = match outcome {
+                Ok(result) => result.map_err(Failure::Error),
+                Err(payload) => {
+                    tracing::error!("mapping panicked; the request is answered with the panic");
+                    Err(Failure::Panic(payload))
+                }
+            };
+            // The robot's worker may have gone (the server stopping): nobody to tell.
+            let _ = reply.send(answer);
+        }
+    }
+
+    /// Runs one request, then publishes the map as it left it.
+    fn handle(&mut self, request: MapRequest) -> Result<MapReply, TrackError> {
+        let stamp = match &request {
+            MapRequest::Start { frame, .. } => Some(frame.timestamp_ns),
+            MapRequest::Insert(insert) => Some(insert.frame.timestamp_ns),
+            MapRequest::Flush(_) => None,
+        };
+        let mut map = self.map.write();
+        let reply = self.mapper.handle(&mut map, request)?;
+        let updated_ns = stamp.unwrap_or_else(|| lock(&self.snapshot).updated_ns);
+        let view = Arc::new(model::map_view(&map, self.label, updated_ns));
+        *lock(&self.snapshot) = view;
+        Ok(reply)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use vsgraphs_slam::local_mapping::PointStatistics;
+
+    fn settings() -> MappingConfig {
+        MappingConfig {
+            local_ba_iterations: 0,
+            local_ba_threads: 1,
+            background_ba: false,
+            triangulate_points: false,
+            cull_keyframes: false,
+        }
+    }
+
+    #[test]
+    fn each_map_has_its_own_writer_and_snapshot() {
+        let mut service = MapService::new();
+        let a = service.create_map(&settings(), 0).unwrap();
+        let b = service.create_map(&settings(), 1).unwrap();
+        assert_ne!(a.id(), b.id());
+        assert_eq!(service.len(), 2);
+        let reply = service
+            .request(&b, MapRequest::Flush(PointStatistics::default()))
+            .unwrap();
+        assert!(matches!(reply, MapReply::Flushed { .. }));
+        let view = service.snapshot(b.id()).unwrap();
+        assert_eq!((view.map, view.keyframe_count), (1, 0));
+        service.stop();
+        let stopped = service.request(&a, MapRequest::Flush(PointStatistics::default()));
+        assert!(matches!(stopped, Err(TrackError::Writer(_))), "{stopped:?}");
+    }
+
+    #[test]
+    fn a_map_of_another_service_is_refused() {
+        let mut ours = MapService::new();
+        let mut theirs = MapService::new();
+        ours.create_map(&settings(), 0).unwrap();
+        let same_id = theirs.create_map(&settings(), 0).unwrap();
+        let flush = || MapRequest::Flush(PointStatistics::default());
+        assert!(matches!(
+            ours.request(&same_id, flush()),
+            Err(TrackError::UnknownMap(MapId(0)))
+        ));
+        let unknown = SharedMap::new(MapId(7));
+        assert!(matches!(
+            ours.request(&unknown, flush()),
+            Err(TrackError::UnknownMap(MapId(7)))
+        ));
+    }
+}

@@ -1,0 +1,94 @@
+//! Where maps live, as trackers see them. A map is shared between its one writer, which runs
+//! local mapping on it ([`crate::local_mapping`]), and the trackers that read it frame by frame;
+//! what changes a map reaches its writer as a [`MapRequest`] through a [`MapWriter`].
+//!
+//! The server's map service implements [`MapWriter`] with a writer thread per map;
+//! [`InlineWriter`] does the same work in the caller's thread, for a program that tracks one
+//! robot in one thread.
+
+use crate::local_mapping::{LocalMapper, MapReply, MapRequest, MappingConfig};
+use crate::map::Map;
+use crate::tracking::TrackError;
+use std::collections::HashMap;
+use std::sync::{Arc, RwLock, RwLockReadGuard, RwLockWriteGuard};
+
+/// A map's id, unique among the maps of one writer (the server's: unique in the server).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, PartialOrd, Ord)]
+pub struct MapId(pub u32);
+
+/// One map and the lock between its writer and its readers: a tracker reads it for the
+/// tracking of a frame, its writer changes it for the length of one request. A panic while it
+/// was held does not make it unreadable: what is left is used, as a caught panic elsewhere in
+/// the pipeline leaves its state.
+#[derive(Debug)]
+pub struct SharedMap {
+    id: MapId,
+    map: RwLock<Map>,
+}
+
+impl SharedMap {
+    pub fn new(id: MapId) -> Self {
+        Self {
+            id,
+            map: RwLock::new(Map::default()),
+        }
+    }
+
+    pub fn id(&self) -> MapId {
+        self.id
+    }
+
+    pub fn read(&self) -> RwLockReadGuard<'_, Map> {
+        self.map
+            .read()
+            .unwrap_or_else(|poisoned| poisoned.into_inner())
+    }
+
+    /// For the map's writer only.
+    pub fn write(&self) -> RwLockWriteGuard<'_, Map> {
+        self.map
+            .write()
+            .unwrap_or_else(|poisoned| poisoned.into_inner())
+    }
+}
+
+/// What changes maps on a tracker's behalf.
+pub trait MapWriter {
+    /// A new, empty map whose writer maps with `settings`. `label` is the creating robot's name
+    /// for it (its index among the robot's maps), which the map's snapshots carry.
+    fn create_map(
+        &mut self,
+        settings: &MappingConfig,
+        label: usize,
+    ) -> Result<Arc<SharedMap>, TrackError>;
+
+    /// Runs `request` on `map`'s writer and returns its reply once the work is done.
+    fn request(&mut self, map: &SharedMap, request: MapRequest) -> Result<MapReply, TrackError>;
+}
+
+/// Maps written in the caller's thread: the local mapping of the server's map service without
+/// a thread of its own.
+#[derive(Default)]
+pub struct InlineWriter {
+    mappers: HashMap<MapId, LocalMapper>,
+}
+
+impl MapWriter for InlineWriter {
+    fn create_map(
+        &mut self,
+        settings: &MappingConfig,
+        _label: usize,
+    ) -> Result<Arc<SharedMap>, TrackError> {
+        let id = MapId(self.mappers.len() as u32);
+        self.mappers.insert(id, LocalMapper::new(settings.clone()));
+        Ok(Arc::new(SharedMap::new(id)))
+    }
+
+    fn request(&mut self, map: &SharedMap, request: MapRequest) -> Result<MapReply, TrackError> {
+        let mapper = self
+            .mappers
+            .get_mut(&map.id())
+            .ok_or(TrackError::UnknownMap(map.id()))?;
+        mapper.handle(&mut map.write(), request)
+    }
+}

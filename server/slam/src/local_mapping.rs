@@ -1,0 +1,292 @@
+//! Local mapping of one map, as its writer runs it: what a tracker asks of the map
+//! ([`MapRequest`]) and the work it takes (ORB-SLAM's local mapping, for RGB-D): the first
+//! keyframe with points from its depth; then each new keyframe with its points, points
+//! triangulated with its neighbours, its marker sightings, fusion with its neighbours, culling
+//! of recent points that do not hold up, and a local bundle adjustment.
+//!
+//! A [`LocalMapper`] holds what mapping remembers between keyframes of its map (the recent
+//! points culling watches, a bundle adjustment being solved in the background), so a map's
+//! mapping goes on wherever its requests come from.
+
+use crate::frame::{Frame, Rig};
+use crate::map::{KeyFrameId, Map, MapPointId};
+use crate::mapping::{self, LocalBaJob, SolvedLocalBa};
+use crate::markers;
+use crate::tracking::TrackError;
+use crate::triangulation;
+use std::sync::mpsc;
+use std::time::Duration;
+use vsgraphs_optim::Se3;
+
+/// How a map is mapped (see `TrackerConfig` for each field's default and reason).
+#[derive(Clone, Debug, PartialEq)]
+pub struct MappingConfig {
+    /// Iterations of local bundle adjustment per keyframe (0: none).
+    pub local_ba_iterations: usize,
+    /// Threads of each local bundle adjustment.
+    pub local_ba_threads: usize,
+    /// Solve each keyframe's local BA on a thread of its own; its result lands before the next
+    /// keyframe is inserted (or at a flush), so maps do not depend on timing.
+    pub background_ba: bool,
+    /// Triangulate a new keyframe's unexplained keypoints with its covisible keyframes.
+    pub triangulate_points: bool,
+    /// Cull keyframes whose close points other keyframes see as well.
+    pub cull_keyframes: bool,
+}
+
+/// Map points that tracked frames projected into view (`visible`) and matched as inliers
+/// (`found`), ORB-SLAM's statistics for culling recent points. Trackers gather them and hand
+/// them to the map's writer with their next request; nothing reads them in between.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct PointStatistics {
+    pub visible: Vec<MapPointId>,
+    pub found: Vec<MapPointId>,
+}
+
+impl PointStatistics {
+    fn apply(self, map: &mut Map) {
+        for p in self.visible {
+            map.point_mut(p).visible += 1;
+        }
+        for p in self.found {
+            map.point_mut(p).found += 1;
+        }
+    }
+}
+
+/// What a tracker asks of a map's writer.
+#[derive(Debug)]
+pub enum MapRequest {
+    /// Start the map (empty until now) from a frame: it becomes the first keyframe, at the
+    /// origin, and every keypoint with depth a map point.
+    Start { frame: Frame, rig: Rig },
+    /// A keyframe from a tracked frame; local mapping runs on it.
+    Insert(KeyframeRequest),
+    /// Land what is pending (the point statistics given, a background bundle adjustment), so
+    /// that the map is final for now: before a tracker leaves the map, at the end of a run.
+    Flush(PointStatistics),
+}
+
+/// A tracked frame to make a keyframe of.
+#[derive(Debug)]
+pub struct KeyframeRequest {
+    pub frame: Frame,
+    pub rig: Rig,
+    /// The pose tracking gave the frame, in the map as the tracker read it.
+    pub world_from_camera: Se3,
+    /// The map point each keypoint was matched to.
+    pub points: Vec<Option<MapPointId>>,
+    /// The tracker's reference keyframe, which keyframe culling keeps.
+    pub reference: Option<KeyFrameId>,
+    /// Statistics of the frames tracked since the tracker's last request.
+    pub statistics: PointStatistics,
+}
+
+/// What a map's writer did for a request.
+#[derive(Clone, Debug, PartialEq)]
+pub enum MapReply {
+    /// The first keyframe, and the map point behind each of its keypoints.
+    Started {
+        keyframe: KeyFrameId,
+        points: Vec<Option<MapPointId>>,
+    },
+    /// The new keyframe, its pose after local mapping, and the point behind each keypoint.
+    /// `local_ba` is the solve time of the bundle adjustments that landed meanwhile.
+    Inserted {
+        keyframe: KeyFrameId,
+        world_from_camera: Se3,
+        points: Vec<Option<MapPointId>>,
+        local_ba: Duration,
+    },
+    Flushed {
+        local_ba: Duration,
+    },
+}
+
+/// The thread that solves a map's local bundle adjustments in the background.
+struct BaWorker {
+    jobs: mpsc::Sender<LocalBaJob>,
+    results: mpsc::Receiver<SolvedLocalBa>,
+}
+
+impl BaWorker {
+    fn spawn() -> std::io::Result<Self> {
+        let (jobs, job_receiver) = mpsc::channel::<LocalBaJob>();
+        let (result_sender, results) = mpsc::channel();
+        let name = std::thread::current()
+            .name()
+            .map_or_else(|| "local-ba".to_owned(), |n| format!("{n}-ba"));
+        std::thread::Builder::new().name(name).spawn(move || {
+            for job in job_receiver {
+                if result_sender.send(job.solve()).is_err() {
+                    return;
+                }
+            }
+        })?;
+        Ok(Self { jobs, results })
+    }
+}
+
+/// Local mapping's memory between the keyframes of one map.
+pub struct LocalMapper {
+    config: MappingConfig,
+    /// Points created recently, watched by culling until they prove themselves.
+    recent_points: Vec<MapPointId>,
+    ba_worker: Option<BaWorker>,
+    /// A bundle adjustment being solved in the background: its keyframe and the rig it was
+    /// built with.
+    pending_ba: Option<(KeyFrameId, Rig)>,
+}
+
+impl LocalMapper {
+    pub fn new(config: MappingConfig) -> Self {
+        Self {
+            config,
+            recent_points: Vec::new(),
+            ba_worker: None,
+            pending_ba: None,
+        }
+    }
+
+    pub fn config(&self) -> &MappingConfig {
+        &self.config
+    }
+
+    /// Does what `request` asks of `map`.
+    pub fn handle(&mut self, map: &mut Map, request: MapRequest) -> Result<MapReply, TrackError> {
+        match request {
+            MapRequest::Start { frame, rig } => Ok(self.start(map, frame, &rig)),
+            MapRequest::Insert(request) => self.insert(map, request),
+            MapRequest::Flush(statistics) => {
+                statistics.apply(map);
+                let (_, local_ba) = self.finish_local_ba(map)?;
+                Ok(MapReply::Flushed { local_ba })
+            }
+        }
+    }
+
+    /// The first keyframe: every keypoint with depth becomes one of its points.
+    fn start(&mut self, map: &mut Map, frame: Frame, rig: &Rig) -> MapReply {
+        let n = frame.len();
+        let keyframe = map.add_keyframe(frame, Se3::identity());
+        for i in 0..n {
+            if let Some(p_c) = map.keyframe(keyframe).frame.back_project(i, &rig.camera) {
+                map.add_point(p_c, keyframe, i, rig);
+            }
+        }
+        markers::add_sightings(map, keyframe, rig);
+        MapReply::Started {
+            keyframe,
+            points: map.keyframe(keyframe).points.clone(),
+        }
+    }
+
+    /// A new keyframe and the local mapping around it.
+    fn insert(&mut self, map: &mut Map, request: KeyframeRequest) -> Result<MapReply, TrackError> {
+        let KeyframeRequest {
+            frame,
+            rig,
+            world_from_camera,
+            points,
+            reference,
+            statistics,
+        } = request;
+        statistics.apply(map);
+        // The previous keyframe's BA lands first: insertion, fusion and culling change the map
+        // it was built from. The frame was tracked against the map before that BA: it moves
+        // with the adjusted keyframe.
+        let (correction, mut local_ba) = self.finish_local_ba(map)?;
+        let pose = match correction {
+            Some(correction) => correction.compose(&world_from_camera),
+            None => world_from_camera,
+        };
+        // The previous keyframe's BA has landed: its neighbours' redundancy is as settled as it
+        // gets (ORB-SLAM culls right after local BA; here that is the same point in both BA
+        // modes). The newest keyframe and the reference stay.
+        if let (true, Some(reference)) = (self.config.cull_keyframes, reference) {
+            let newest = map.keyframes.last().map(|k| k.id);
+            let culled = mapping::cull_redundant_keyframes(map, &rig, reference, newest);
+            if !culled.is_empty() {
+                tracing::trace!(?culled, "redundant keyframes culled");
+            }
+        }
+        let (k, created) = mapping::insert_keyframe(map, &rig, frame, pose, &points);
+        self.recent_points.extend(created);
+        if self.config.triangulate_points {
+            let (created, report) = triangulation::create_points_with_neighbours(map, &rig, k);
+            tracing::trace!(keyframe = k.0, ?report, "points triangulated");
+            self.recent_points.extend(created);
+        }
+        let added = markers::add_sightings(map, k, &rig);
+        if !added.is_empty() {
+            tracing::debug!(?added, keyframe = k.0, "markers mapped");
+        }
+        mapping::fuse_with_neighbours(map, &rig, k);
+        mapping::cull_recent_points(map, &mut self.recent_points, k);
+        map.refresh_neighbours(k);
+        if self.config.local_ba_iterations > 0 {
+            let job = mapping::prepare_local_ba(map, &rig, k, self.config.local_ba_iterations)
+                .with_threads(self.config.local_ba_threads);
+            local_ba += self.start_local_ba(map, job, k, rig)?;
+        }
+        let keyframe = map.keyframe(k);
+        Ok(MapReply::Inserted {
+            keyframe: k,
+            world_from_camera: keyframe.world_from_camera,
+            points: keyframe.points.clone(),
+            local_ba,
+        })
+    }
+
+    /// Solves `job` here, or on the BA thread (started on first use) with `background_ba`.
+    /// Returns the solve time of what landed here.
+    fn start_local_ba(
+        &mut self,
+        map: &mut Map,
+        job: LocalBaJob,
+        keyframe: KeyFrameId,
+        rig: Rig,
+    ) -> Result<Duration, TrackError> {
+        if !self.config.background_ba {
+            let solved = job.solve();
+            let solve_time = solved.solve_time;
+            let report = mapping::apply_local_ba(map, &rig, solved)?;
+            tracing::trace!(?report, "local bundle adjustment");
+            return Ok(solve_time);
+        }
+        if self.ba_worker.is_none() {
+            self.ba_worker = Some(BaWorker::spawn().map_err(|_| TrackError::BaThreadStopped)?);
+        }
+        let worker = self.ba_worker.as_ref().expect("spawned above");
+        if worker.jobs.send(job).is_err() {
+            self.ba_worker = None;
+            return Err(TrackError::BaThreadStopped);
+        }
+        self.pending_ba = Some((keyframe, rig));
+        Ok(Duration::ZERO)
+    }
+
+    /// Waits for the background BA, if any, and applies it. Returns how its keyframe moved
+    /// (`after · before⁻¹`; poses tracked against the map before it move the same way) and
+    /// its solve time.
+    fn finish_local_ba(&mut self, map: &mut Map) -> Result<(Option<Se3>, Duration), TrackError> {
+        let Some((keyframe, rig)) = self.pending_ba.take() else {
+            return Ok((None, Duration::ZERO));
+        };
+        let worker = self.ba_worker.as_ref().ok_or(TrackError::BaThreadStopped)?;
+        let Ok(solved) = worker.results.recv() else {
+            // The thread died (a panic in the solver): the next keyframe starts another.
+            self.ba_worker = None;
+            return Err(TrackError::BaThreadStopped);
+        };
+        let solve_time = solved.solve_time;
+        let before = map.keyframe(keyframe).world_from_camera;
+        let report = mapping::apply_local_ba(map, &rig, solved)?;
+        tracing::trace!(?report, "local bundle adjustment");
+        let correction = map
+            .keyframe(keyframe)
+            .world_from_camera
+            .compose(&before.inverse());
+        Ok((Some(correction), solve_time))
+    }
+}

@@ -1,0 +1,270 @@
+//! Finding a lost robot in its map without a vocabulary: from a mapped marker in view at once,
+//! else against a few keyframes per frame (the newest first, then round-robin back through the
+//! map): descriptor matches, a three-point RANSAC of rigid fits on the matches' depths (both
+//! sides' 3-D positions are known, which is more robust than PnP), pose optimisation, then the
+//! local map decides.
+
+use super::local_map::LocalMapSearch;
+use super::matches::{descriptor_query, optimise, Matched, Source, Tracked};
+use crate::frame::{Frame, Rig};
+use crate::local_mapping::PointStatistics;
+use crate::map::{KeyFrameId, Map, MapPointId};
+use crate::markers;
+use crate::matcher;
+use nalgebra::{Matrix3, Vector3};
+use vsgraphs_optim::Se3;
+
+/// Nearest over second-nearest descriptor distance a match must beat.
+const RATIO: f32 = 0.75;
+/// Descriptor matches a keyframe needs, and inliers after the pose is optimised.
+const MIN_MATCHES: usize = 15;
+const MIN_INLIERS: usize = 15;
+/// RANSAC: samples drawn, pairs the best fit needs, and a pair's inlier distance (5 cm plus 2 %
+/// of its depth, the growth of RGB-D depth noise).
+const RANSAC_SAMPLES: usize = 200;
+const RANSAC_MIN_INLIERS: usize = 6;
+const RANSAC_DISTANCE_M: f64 = 0.05;
+const RANSAC_DISTANCE_PER_DEPTH: f64 = 0.02;
+
+/// Where relocalisation goes on from, frame after frame.
+pub(super) struct Relocaliser {
+    /// Keyframes tried per frame.
+    candidates: usize,
+    /// Next keyframe to try, counted back from the newest.
+    cursor: usize,
+}
+
+impl Relocaliser {
+    pub fn new(candidates: usize) -> Self {
+        Self {
+            candidates,
+            cursor: 0,
+        }
+    }
+
+    /// Starts again from the newest keyframe (a new map).
+    pub fn reset(&mut self) {
+        self.cursor = 0;
+    }
+
+    /// A mapped marker in view gives the pose at once (then the local map around the
+    /// keyframes that saw it refines it); otherwise the next few keyframes are tried.
+    #[allow(clippy::too_many_arguments)]
+    pub fn relocalise(
+        &mut self,
+        map: &Map,
+        frame: &Frame,
+        rig: &Rig,
+        search: &LocalMapSearch,
+        fallback_reference: Option<KeyFrameId>,
+        statistics: &mut PointStatistics,
+    ) -> Option<Tracked> {
+        let keyframes = map.keyframes.len();
+        if keyframes == 0 {
+            return None;
+        }
+        if let Some((id, world_from_camera)) = markers::pose_from_markers(map, &frame.markers) {
+            let seeds: Vec<KeyFrameId> = map.markers[&id]
+                .observations
+                .iter()
+                .map(|&(k, _)| k)
+                .collect();
+            let matched = Matched {
+                world_from_camera,
+                pairs: Vec::new(),
+                inliers: 0,
+            };
+            let tracked = search.track(
+                map,
+                frame,
+                rig,
+                matched,
+                true,
+                &seeds,
+                fallback_reference,
+                statistics,
+            );
+            if tracked.is_some() {
+                return tracked;
+            }
+        }
+        let mut tries = self.candidates.min(keyframes);
+        for _ in 0..keyframes {
+            if tries == 0 {
+                break;
+            }
+            // Newest first, then backwards through the map, passing culled keyframes by.
+            let k = KeyFrameId((keyframes - 1 - self.cursor % keyframes) as u32);
+            self.cursor += 1;
+            if map.keyframe(k).is_culled() {
+                continue;
+            }
+            tries -= 1;
+            let Some(matched) = against_keyframe(map, frame, rig, k) else {
+                continue;
+            };
+            let candidates = matched.inliers;
+            let tracked = search.track(
+                map,
+                frame,
+                rig,
+                matched,
+                true,
+                &[],
+                fallback_reference,
+                statistics,
+            );
+            if let Some(tracked) = tracked {
+                tracing::debug!(
+                    stamp_ns = frame.timestamp_ns,
+                    keyframe = k.0,
+                    inliers = tracked.inliers,
+                    "relocalised against a keyframe"
+                );
+                self.cursor = 0;
+                return Some(tracked);
+            }
+            tracing::debug!(
+                stamp_ns = frame.timestamp_ns,
+                keyframe = k.0,
+                candidates,
+                "relocalisation failed on the local map"
+            );
+        }
+        None
+    }
+}
+
+/// The frame's pose against keyframe `k`: descriptor matches, RANSAC on their depths, then
+/// pose optimisation.
+fn against_keyframe(map: &Map, frame: &Frame, rig: &Rig, k: KeyFrameId) -> Option<Matched> {
+    let (query, points) = descriptor_query(map, k);
+    let matches = matcher::match_descriptors(&query, frame, RATIO, true);
+    if matches.len() < MIN_MATCHES {
+        return None;
+    }
+    // (world point, camera point) for matches with depth in this frame.
+    let pairs: Vec<(usize, MapPointId)> = matches.iter().map(|&(q, i)| (i, points[q])).collect();
+    let correspondences: Vec<(Vector3<f64>, Vector3<f64>)> = pairs
+        .iter()
+        .filter_map(|&(i, p)| {
+            frame
+                .back_project(i, &rig.camera)
+                .map(|c| (map.point(p).position, c))
+        })
+        .collect();
+    let start = ransac_pose(&correspondences, frame.timestamp_ns)?;
+    let matched = optimise(
+        map,
+        frame,
+        rig,
+        &start,
+        pairs
+            .into_iter()
+            .map(|(i, p)| (i, Source::Point(p)))
+            .collect(),
+    );
+    (matched.inliers >= MIN_INLIERS).then_some(matched)
+}
+
+/// `world_from_camera` from (world, camera) point pairs by RANSAC over three-point rigid fits:
+/// the fit with most pairs within the inlier distance, refitted on them. Deterministic for a
+/// given seed.
+fn ransac_pose(pairs: &[(Vector3<f64>, Vector3<f64>)], seed: u64) -> Option<Se3> {
+    if pairs.len() < RANSAC_MIN_INLIERS {
+        return None;
+    }
+    let mut state = seed | 1;
+    let mut next = |n: usize| {
+        state ^= state << 13;
+        state ^= state >> 7;
+        state ^= state << 17;
+        (state % n as u64) as usize
+    };
+    let inliers_of = |pose: &Se3| -> Vec<usize> {
+        pairs
+            .iter()
+            .enumerate()
+            .filter(|(_, (w, c))| {
+                (pose.transform_point(c) - w).norm()
+                    < RANSAC_DISTANCE_M + RANSAC_DISTANCE_PER_DEPTH * c.z
+            })
+            .map(|(i, _)| i)
+            .collect()
+    };
+    let mut best: Vec<usize> = Vec::new();
+    for _ in 0..RANSAC_SAMPLES {
+        let (a, b, c) = (next(pairs.len()), next(pairs.len()), next(pairs.len()));
+        if a == b || b == c || a == c {
+            continue;
+        }
+        let Some(pose) = rigid_fit(&[pairs[a], pairs[b], pairs[c]]) else {
+            continue;
+        };
+        let inliers = inliers_of(&pose);
+        if inliers.len() > best.len() {
+            best = inliers;
+        }
+    }
+    if best.len() < RANSAC_MIN_INLIERS {
+        return None;
+    }
+    let chosen: Vec<_> = best.iter().map(|&i| pairs[i]).collect();
+    rigid_fit(&chosen)
+}
+
+/// The rigid transform taking the second points of each pair onto the first (Kabsch).
+fn rigid_fit(pairs: &[(Vector3<f64>, Vector3<f64>)]) -> Option<Se3> {
+    let n = pairs.len() as f64;
+    let mean_w = pairs.iter().map(|p| p.0).sum::<Vector3<f64>>() / n;
+    let mean_c = pairs.iter().map(|p| p.1).sum::<Vector3<f64>>() / n;
+    let mut cross = Matrix3::zeros();
+    for (w, c) in pairs {
+        cross += (w - mean_w) * (c - mean_c).transpose();
+    }
+    let svd = cross.svd(true, true);
+    let (u, v_t) = (svd.u?, svd.v_t?);
+    // Degenerate (collinear) samples have two vanishing singular values.
+    if svd.singular_values[1] < 1e-9 * svd.singular_values[0].max(1e-12) {
+        return None;
+    }
+    let mut d = Matrix3::identity();
+    if (u * v_t).determinant() < 0.0 {
+        d[(2, 2)] = -1.0;
+    }
+    let rotation = u * d * v_t;
+    let rotation = nalgebra::UnitQuaternion::from_matrix(&rotation);
+    let translation = mean_w - rotation * mean_c;
+    Some(Se3::new(rotation, translation))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use nalgebra::UnitQuaternion;
+
+    #[test]
+    fn ransac_finds_the_pose_among_outliers() {
+        let truth = Se3::new(
+            UnitQuaternion::from_euler_angles(0.2, -0.5, 1.0),
+            Vector3::new(1.0, 2.0, -0.5),
+        );
+        let mut pairs = Vec::new();
+        for i in 0..60 {
+            let f = f64::from(i);
+            let c = Vector3::new(
+                (f * 0.37).sin(),
+                (f * 0.91).cos(),
+                1.0 + (f * 0.13).sin().abs() * 3.0,
+            );
+            let mut w = truth.transform_point(&c);
+            if i % 3 == 0 {
+                w += Vector3::new(0.5, -0.7, 0.3) * (1.0 + f * 0.01);
+            }
+            pairs.push((w, c));
+        }
+        let pose = ransac_pose(&pairs, 42).unwrap();
+        let error = truth.local(&pose);
+        assert!(error.norm() < 1e-9, "{error}");
+    }
+}
