@@ -46,15 +46,15 @@ impl Pinhole {
 /// How an RGB-D keypoint's depth enters its reprojection residual, whose first two entries are
 /// always `u − u_m` and `v − v_m`.
 ///
-/// Measured on this project's data (BENCHMARKS.md, session 18): registered depth (the
-/// simulator's, like a RealSense aligned to colour) is tracked best by the disparity, whose
-/// error is independent of the pixel's; 7-Scenes' Kinect depth, taken by the infrared camera
-/// beside the colour one and not registered to it, by the right-image form.
+/// Registered depth (aligned to colour, as a RealSense can give it) is tracked best by the
+/// disparity, whose error is independent of the pixel's; depth taken by an infrared camera
+/// beside the colour one and not registered to it (Kinect-class sensors), by the right-image
+/// form. The measurements are in BENCHMARKS.md ("Accuracy").
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
 pub enum DepthResidual {
     /// `bf/z_m − bf/z`: the depth as a disparity against the measured one. No lever arm, so no
-    /// bias: a one-sided virtual camera turns depth noise into a yaw of one sign (+0.008° per
-    /// pose on seq06, a heading drift of 2–3° over its walk).
+    /// bias: a one-sided virtual camera turns depth noise into a yaw of one sign, a heading
+    /// drift that grows with the distance walked.
     #[default]
     Disparity,
     /// ORB-SLAM's `u − bf/z − u_r,m`: the reprojection into a virtual camera `b` to the right,

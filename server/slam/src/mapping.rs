@@ -465,8 +465,8 @@ pub fn prepare_local_ba(
     }
     // Without a fixed keyframe the window could drift as a whole (nothing holds the gauge):
     // hold its oldest keyframe. Only keyframes fixed through points count: one tied to the
-    // window by a marker's four corners alone holds it too loosely (measured on seq06: ATE
-    // 0.072 m instead of 0.022 m over 800 frames, the window sliding by centimetres).
+    // window by a marker's four corners alone holds it too loosely, and the window slides by
+    // centimetres (ARCHITECTURE.md, "Markers in tracking").
     if poses.fixed == 0 {
         if let Some(oldest) = window.iter().min() {
             values.set_fixed(poses.keys[oldest].id, true);
@@ -476,8 +476,8 @@ pub fn prepare_local_ba(
     // Markers the window sees, with their sightings from the keyframes already in the problem
     // (the window and the keyframes that hold it through points): corners, 8-D. Sightings from
     // other keyframes would tie the window to far older parts of the map: a loop closure that
-    // local BA cannot distribute (measured on seq06: the window snapped by 1.6 cm and ATE over
-    // 800 frames rose from 0.022 m to 0.072 m). They stay in the map for global optimisation.
+    // local BA cannot distribute, so the window snaps instead (ARCHITECTURE.md, "Markers in
+    // tracking"). They stay in the map for global optimisation.
     let mut marker_keys: Vec<(i32, Key<Se3>)> = Vec::new();
     let mut marker_factors = Vec::new();
     for marker in map.markers.values() {

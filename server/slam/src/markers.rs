@@ -37,8 +37,8 @@ pub const CORNER_INFORMATION: f64 = 1.0;
 /// than this from their sighting (root mean square, pixels) is taken for a misread id and left
 /// out of that optimisation. A texture patch decoded as a marker mapped elsewhere gives four
 /// corners hundreds of pixels off, whose robust cost still outweighs hundreds of good
-/// keypoints: seq03 lost track that way at 174.07 s (168 inliers without the marker, none
-/// with it). A motion-model prediction puts a true marker within a few pixels.
+/// keypoints, enough to lose track of a frame that its keypoints alone place well. A
+/// motion-model prediction puts a true marker within a few pixels.
 pub const MARKER_GATE_PX: f64 = 40.0;
 
 /// Pose observations of the mapped markers among `sightings` (four corners each), for
@@ -98,7 +98,7 @@ fn explains(rig: &Rig, world_from_camera: &Se3, corners: &[PoseObservation; 4], 
 
 /// Records keyframe `k`'s sightings: a mapped marker gains the observation when the keyframe's
 /// pose explains it (a misread id elsewhere in the image would drag the landmark there in local
-/// BA: seq03's marker 17 ended 6 m off so), an unmapped one with a detector pose joins the map.
+/// BA, metres from where it hangs), an unmapped one with a detector pose joins the map.
 /// Returns the ids of the markers it added.
 pub fn add_sightings(map: &mut Map, k: KeyFrameId, rig: &Rig) -> Vec<i32> {
     let world_from_camera = map.keyframe(k).world_from_camera;

@@ -30,7 +30,8 @@ pub struct OrbParams {
     /// σ, in pixels of the image, of the Gaussian that smooths the image before it is shrunk
     /// to the levels at least twice smaller, where corners are searched (0: none). Bilinear
     /// shrinking reads only the 2 × 2 pixels around each sample, so without it those levels
-    /// alias and their corners jitter as the view moves (BENCHMARKS.md, session 14).
+    /// alias and their corners jitter as the view moves (ARCHITECTURE.md, "Coarse levels are
+    /// shrunk from a smoothed image").
     pub coarse_smoothing_sigma: f64,
 }
 
@@ -140,8 +141,8 @@ impl OrbExtractor {
         let mut descriptors = Vec::with_capacity(self.params.features);
         // Two pyramids: corners are searched on levels shrunk straight from the image, and
         // described on levels each shrunk from the one before (as OpenCV's ORB builds them).
-        // Measured on seq06 (three renderer seeds), describing on the direct levels gave ATE
-        // 0.047 m on average against 0.037 m, and searching on the cascade was worse still.
+        // Describing on the direct levels, or searching on the cascade, tracked worse
+        // (ARCHITECTURE.md, "Rotated BRIEF is ours").
         let mut resized = Mat::default();
         let (mut cascade, mut next) = (Mat::default(), Mat::default());
         let size = grey.size()?;

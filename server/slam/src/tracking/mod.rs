@@ -106,12 +106,13 @@ impl Default for TrackerConfig {
             new_map_after_s: 3.0,
             relocalisation_candidates: 4,
             marker_landmarks: true,
-            // Off until it is as accurate: 7-Scenes 0.026 m with it (inline 0.028 m), but seq06
-            // 0.050 m (inline 0.038 m); ARCHITECTURE.md, "Tracking".
+            // Off until it is as accurate as mapping before the next frame (ARCHITECTURE.md,
+            // "Tracking"; figures in BENCHMARKS.md).
             background_ba: false,
             triangulate_points: true,
-            // Off: seq06 seeds 1–3 0.054 / 0.036 / 0.064 m with it, 0.040 / 0.055 / 0.026 m
-            // without; 7-Scenes 0.0307 m against 0.0291 m (ARCHITECTURE.md, "Tracking").
+            // Off: with mapping before the next frame, every keyframe's observations are worth
+            // more to local BA than the shorter window culling buys (measured less accurate on
+            // real and simulated data; ARCHITECTURE.md, "Tracking").
             cull_keyframes: false,
         }
     }
