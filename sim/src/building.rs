@@ -5,61 +5,12 @@
 //! Marker frames follow ArUco: x to the right and y up as the marker is seen, z out of the
 //! wall towards the viewer (so along the wall's normal into its space).
 
-use crate::plan::{Door, FloorPlan, PlanError, SpaceKind};
+use crate::plan::{
+    all_sides, shared_wall, FloorPlan, PlanError, Side, SpaceKind, DOOR_CLEARANCE, EPS,
+};
 use nalgebra::{Isometry3, Matrix3, Rotation3, Translation3, UnitQuaternion, Vector3};
 use serde::Serialize;
 use vsgraphs_optim::Plane;
-
-/// One side of a wall, facing into its space: the plane `x[axis] = at`, normal `facing` along
-/// `axis`, spanning `from..to` along the other floor axis.
-#[derive(Clone, Copy, Debug, PartialEq)]
-pub(crate) struct Side {
-    pub(crate) axis: usize,
-    pub(crate) at: f64,
-    pub(crate) facing: f64,
-    pub(crate) from: f64,
-    pub(crate) to: f64,
-}
-
-impl Side {
-    fn normal(&self) -> Vector3<f64> {
-        let mut n = Vector3::zeros();
-        n[self.axis] = self.facing;
-        n
-    }
-
-    /// The point on this side at `along` (the other floor axis) and height `z`.
-    fn point(&self, along: f64, z: f64) -> Vector3<f64> {
-        let mut p = Vector3::new(0.0, 0.0, z);
-        p[self.axis] = self.at;
-        p[1 - self.axis] = along;
-        p
-    }
-
-    fn plane(&self) -> Plane {
-        let n = self.normal();
-        Plane::new(n, -n.dot(&self.point(0.0, 0.0))).expect("a unit normal")
-    }
-}
-
-/// Every side of a space's rectangle, `[x_min, x_max, y_min, y_max]`, bounding or not (a door
-/// may open in a corridor's end).
-pub(crate) fn all_sides(plan: &FloorPlan, space: usize) -> [Side; 4] {
-    let s = &plan.spaces[space];
-    let side = |axis: usize, at: f64, facing: f64| Side {
-        axis,
-        at,
-        facing,
-        from: s.min[1 - axis],
-        to: s.max[1 - axis],
-    };
-    [
-        side(0, s.min[0], 1.0),
-        side(0, s.max[0], -1.0),
-        side(1, s.min[1], 1.0),
-        side(1, s.max[1], -1.0),
-    ]
-}
 
 /// The wall sides that bound a space: a room's four (in the order `room_centre` takes), a
 /// corridor's two long ones.
@@ -72,29 +23,6 @@ fn sides(plan: &FloorPlan, space: usize) -> Vec<Side> {
         SpaceKind::Corridor if s.max[0] - s.min[0] >= s.max[1] - s.min[1] => all[2..].to_vec(),
         SpaceKind::Corridor => all[..2].to_vec(),
     }
-}
-
-const EPS: f64 = 1e-9;
-
-/// The two facing sides (of `between[0]` and `between[1]`) in whose shared wall the door opens.
-pub(crate) fn shared_wall(plan: &FloorPlan, door: &Door) -> Option<(Side, Side)> {
-    let index = |name: &str| plan.spaces.iter().position(|s| s.name == name);
-    let (a, b) = (index(&door.between[0])?, index(&door.between[1])?);
-    let half = door.width / 2.0;
-    let holds = |s: &Side| {
-        let along = door.at[1 - s.axis];
-        (door.at[s.axis] - s.at).abs() < EPS
-            && along - half >= s.from - EPS
-            && along + half <= s.to + EPS
-    };
-    for sa in all_sides(plan, a).into_iter().filter(holds) {
-        for sb in all_sides(plan, b).into_iter().filter(holds) {
-            if sa.axis == sb.axis && sa.facing == -sb.facing {
-                return Some((sa, sb));
-            }
-        }
-    }
-    None
 }
 
 /// A marker of the building.
@@ -154,9 +82,6 @@ pub struct Building {
     pub doorways: Vec<Doorway>,
     pub spaces: Vec<SpaceTruth>,
 }
-
-/// Clearance between a door's opening and a marker's edge, metres.
-pub(crate) const DOOR_CLEARANCE: f64 = 0.15;
 
 impl Building {
     pub fn from_plan(plan: &FloorPlan) -> Result<Self, PlanError> {

@@ -18,8 +18,10 @@
 //! A room is bounded by its four walls; a corridor by its two long walls (its ends are open).
 //! A door's `at` is the middle of its opening, on the wall line the two spaces share.
 
+use nalgebra::Vector3;
 use serde::{Deserialize, Serialize};
 use thiserror::Error;
+use vsgraphs_optim::Plane;
 
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
@@ -198,7 +200,7 @@ impl FloorPlan {
             positive(d.width, &format!("door {:?} width", d.name))?;
             positive(d.height, &format!("door {:?} height", d.name))?;
             // A door marker may have to hang above the frame.
-            let above = d.height + crate::building::DOOR_CLEARANCE + self.markers.side;
+            let above = d.height + DOOR_CLEARANCE + self.markers.side;
             if above >= self.wall_height {
                 return Err(PlanError::DoorHeight {
                     door: d.name.clone(),
@@ -212,7 +214,7 @@ impl FloorPlan {
                     });
                 }
             }
-            if crate::building::shared_wall(self, d).is_none() {
+            if shared_wall(self, d).is_none() {
                 return Err(PlanError::DoorNotOnSharedWall(d.name.clone()));
             }
         }
@@ -226,4 +228,85 @@ impl FloorPlan {
         }
         Ok(())
     }
+}
+
+// The plan's wall geometry: sides of its rectangles and the walls doors open in. The building
+// hangs markers on these sides; validation needs them to place doors.
+
+/// Clearance between a door's opening and a marker's edge, metres.
+pub(crate) const DOOR_CLEARANCE: f64 = 0.15;
+
+/// One side of a wall, facing into its space: the plane `x[axis] = at`, normal `facing` along
+/// `axis`, spanning `from..to` along the other floor axis.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub(crate) struct Side {
+    pub(crate) axis: usize,
+    pub(crate) at: f64,
+    pub(crate) facing: f64,
+    pub(crate) from: f64,
+    pub(crate) to: f64,
+}
+
+impl Side {
+    pub(crate) fn normal(&self) -> Vector3<f64> {
+        let mut n = Vector3::zeros();
+        n[self.axis] = self.facing;
+        n
+    }
+
+    /// The point on this side at `along` (the other floor axis) and height `z`.
+    pub(crate) fn point(&self, along: f64, z: f64) -> Vector3<f64> {
+        let mut p = Vector3::new(0.0, 0.0, z);
+        p[self.axis] = self.at;
+        p[1 - self.axis] = along;
+        p
+    }
+
+    pub(crate) fn plane(&self) -> Plane {
+        let n = self.normal();
+        Plane::new(n, -n.dot(&self.point(0.0, 0.0))).expect("a unit normal")
+    }
+}
+
+/// Every side of a space's rectangle, `[x_min, x_max, y_min, y_max]`, bounding or not (a door
+/// may open in a corridor's end).
+pub(crate) fn all_sides(plan: &FloorPlan, space: usize) -> [Side; 4] {
+    let s = &plan.spaces[space];
+    let side = |axis: usize, at: f64, facing: f64| Side {
+        axis,
+        at,
+        facing,
+        from: s.min[1 - axis],
+        to: s.max[1 - axis],
+    };
+    [
+        side(0, s.min[0], 1.0),
+        side(0, s.max[0], -1.0),
+        side(1, s.min[1], 1.0),
+        side(1, s.max[1], -1.0),
+    ]
+}
+
+/// Geometric tolerance of the plan's coordinates, metres.
+pub(crate) const EPS: f64 = 1e-9;
+
+/// The two facing sides (of `between[0]` and `between[1]`) in whose shared wall the door opens.
+pub(crate) fn shared_wall(plan: &FloorPlan, door: &Door) -> Option<(Side, Side)> {
+    let index = |name: &str| plan.spaces.iter().position(|s| s.name == name);
+    let (a, b) = (index(&door.between[0])?, index(&door.between[1])?);
+    let half = door.width / 2.0;
+    let holds = |s: &Side| {
+        let along = door.at[1 - s.axis];
+        (door.at[s.axis] - s.at).abs() < EPS
+            && along - half >= s.from - EPS
+            && along + half <= s.to + EPS
+    };
+    for sa in all_sides(plan, a).into_iter().filter(holds) {
+        for sb in all_sides(plan, b).into_iter().filter(holds) {
+            if sa.axis == sb.axis && sa.facing == -sb.facing {
+                return Some((sa, sb));
+            }
+        }
+    }
+    None
 }

@@ -8,8 +8,9 @@
 //! sides of one wall.
 
 use crate::aruco::{Dictionary, MarkerBits};
-use crate::building::{all_sides, shared_wall, Building};
+use crate::building::Building;
 use crate::plan::FloorPlan;
+use crate::plan::{all_sides, shared_wall};
 use crate::texture::{self, Canvas, Keepout, Lighting, Pattern, Texture};
 use nalgebra::{Isometry3, Vector3};
 

@@ -8,7 +8,7 @@
 //! cutting, whose points lie on the legs they join (so the path never leaves the spaces), and
 //! the result is resampled at constant speed with a gentle start and stop.
 
-use crate::building::shared_wall;
+use crate::plan::shared_wall;
 use crate::plan::FloorPlan;
 use crate::random::Random;
 use nalgebra::{Isometry3, Matrix3, Rotation3, Translation3, UnitQuaternion, Vector2, Vector3};

@@ -4,8 +4,9 @@
 
 use serde::{Deserialize, Serialize};
 use std::net::SocketAddr;
-use std::path::{Path, PathBuf};
+use std::path::Path;
 use thiserror::Error;
+use vsgraphs_pipeline::config::{read_toml, FileError, InvalidField};
 pub use vsgraphs_pipeline::config::{
     DepthResidualSetting, MarkerConfig, PipelineConfig, TrackingConfig,
 };
@@ -82,34 +83,16 @@ impl Default for IngestConfig {
 
 #[derive(Debug, Error)]
 pub enum ConfigError {
-    #[error("cannot read {path}: {source}")]
-    Io {
-        path: PathBuf,
-        source: std::io::Error,
-    },
-    #[error("{path}: {source}")]
-    Parse {
-        path: PathBuf,
-        source: toml::de::Error,
-    },
-    #[error("{field}: {message}")]
-    Invalid {
-        field: &'static str,
-        message: String,
-    },
+    #[error(transparent)]
+    File(#[from] FileError),
+    #[error(transparent)]
+    Invalid(#[from] InvalidField),
 }
 
 impl Config {
     /// Reads a configuration file; fields it leaves out keep their defaults.
     pub fn load(path: &Path) -> Result<Self, ConfigError> {
-        let text = std::fs::read_to_string(path).map_err(|source| ConfigError::Io {
-            path: path.to_owned(),
-            source,
-        })?;
-        let config: Config = toml::from_str(&text).map_err(|source| ConfigError::Parse {
-            path: path.to_owned(),
-            source,
-        })?;
+        let config: Config = read_toml(path)?;
         config.validate()?;
         Ok(config)
     }
@@ -124,7 +107,7 @@ impl Config {
 
     /// Checks values that parse but cannot work.
     pub fn validate(&self) -> Result<(), ConfigError> {
-        let invalid = |field, message: String| Err(ConfigError::Invalid { field, message });
+        let invalid = |field, message: String| Err(InvalidField { field, message }.into());
         if self.ingest.queue_capacity == 0 {
             return invalid("ingest.queue_capacity", "must be at least 1".into());
         }
@@ -134,12 +117,7 @@ impl Config {
         if self.ingest.max_frame_bytes < 1024 {
             return invalid("ingest.max_frame_bytes", "must be at least 1024".into());
         }
-        self.pipeline()
-            .validate()
-            .map_err(|e| ConfigError::Invalid {
-                field: e.field,
-                message: e.message,
-            })?;
+        self.pipeline().validate()?;
         if let Err(e) = self.zenoh.to_config() {
             return invalid("zenoh", e.to_string());
         }
@@ -204,7 +182,7 @@ mod tests {
         assert_eq!(Config::load(&path).unwrap().http.listen.port(), 9000);
         assert!(matches!(
             Config::load(&dir.path().join("missing.toml")),
-            Err(ConfigError::Io { .. })
+            Err(ConfigError::File(FileError::Io { .. }))
         ));
     }
 }

@@ -9,6 +9,7 @@ pub mod api;
 pub mod config;
 pub mod detect;
 pub mod ingest;
+pub mod queue;
 pub mod robots;
 pub mod simulate;
 pub mod web;

@@ -3,7 +3,7 @@
 //! Written by the zenoh callbacks (arrivals, presence) and the robot's worker thread (outcomes);
 //! read by the API. Locks are held for a few field updates only, never across I/O or `.await`.
 
-use crate::ingest::queue::FrameQueue;
+use crate::queue::FrameQueue;
 use std::collections::{BTreeMap, HashMap, VecDeque};
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex, RwLock};

@@ -2,6 +2,7 @@
 //! (`config/vsgraphs.toml` documents every field with its default). The server embeds them in
 //! its own configuration; the evaluation tools read just these sections from the same file.
 
+use serde::de::DeserializeOwned;
 use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
 use thiserror::Error;
@@ -137,8 +138,9 @@ pub struct InvalidField {
     pub message: String,
 }
 
+/// A TOML file that could not be read or parsed.
 #[derive(Debug, Error)]
-pub enum PipelineConfigError {
+pub enum FileError {
     #[error("cannot read {path}: {source}")]
     Io {
         path: PathBuf,
@@ -149,6 +151,25 @@ pub enum PipelineConfigError {
         path: PathBuf,
         source: toml::de::Error,
     },
+}
+
+/// Reads and parses a TOML file (the server's configuration, or the sections of it a reader
+/// takes).
+pub fn read_toml<T: DeserializeOwned>(path: &Path) -> Result<T, FileError> {
+    let text = std::fs::read_to_string(path).map_err(|source| FileError::Io {
+        path: path.to_owned(),
+        source,
+    })?;
+    toml::from_str(&text).map_err(|source| FileError::Parse {
+        path: path.to_owned(),
+        source,
+    })
+}
+
+#[derive(Debug, Error)]
+pub enum PipelineConfigError {
+    #[error(transparent)]
+    File(#[from] FileError),
     #[error(transparent)]
     Invalid(#[from] InvalidField),
 }
@@ -157,15 +178,7 @@ impl PipelineConfig {
     /// Reads the `[markers]` and `[tracking]` sections of a server configuration file; fields
     /// it leaves out keep their defaults, unknown fields in those sections are refused.
     pub fn load(path: &Path) -> Result<Self, PipelineConfigError> {
-        let text = std::fs::read_to_string(path).map_err(|source| PipelineConfigError::Io {
-            path: path.to_owned(),
-            source,
-        })?;
-        let config: PipelineConfig =
-            toml::from_str(&text).map_err(|source| PipelineConfigError::Parse {
-                path: path.to_owned(),
-                source,
-            })?;
+        let config: PipelineConfig = read_toml(path)?;
         config.validate()?;
         Ok(config)
     }

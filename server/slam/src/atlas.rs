@@ -2,19 +2,13 @@
 //! local mapping on it ([`crate::local_mapping`]), and the trackers that read it frame by frame;
 //! what changes a map reaches its writer as a [`MapRequest`] through a [`MapWriter`].
 //!
-//! The server's map service implements [`MapWriter`] with a writer thread per map;
-//! [`InlineWriter`] does the same work in the caller's thread, for a program that tracks one
-//! robot in one thread.
+//! The pipeline's map service implements [`MapWriter`] with a writer thread per map, each
+//! running a [`LocalMapper`](crate::local_mapping::LocalMapper) on its map.
 
-use crate::local_mapping::{LocalMapper, MapReply, MapRequest, MappingConfig};
-use crate::map::Map;
-use crate::tracking::TrackError;
-use std::collections::HashMap;
+use crate::error::TrackError;
+use crate::local_mapping::{MapReply, MapRequest, MappingConfig};
+use crate::map::{Map, MapId};
 use std::sync::{Arc, RwLock, RwLockReadGuard, RwLockWriteGuard};
-
-/// A map's id, unique among the maps of one writer (the server's: unique in the server).
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, PartialOrd, Ord)]
-pub struct MapId(pub u32);
 
 /// One map and the lock between its writer and its readers: a tracker reads it for the
 /// tracking of a frame, its writer changes it for the length of one request. A panic while it
@@ -64,31 +58,4 @@ pub trait MapWriter {
 
     /// Runs `request` on `map`'s writer and returns its reply once the work is done.
     fn request(&mut self, map: &SharedMap, request: MapRequest) -> Result<MapReply, TrackError>;
-}
-
-/// Maps written in the caller's thread: the local mapping of the server's map service without
-/// a thread of its own.
-#[derive(Default)]
-pub struct InlineWriter {
-    mappers: HashMap<MapId, LocalMapper>,
-}
-
-impl MapWriter for InlineWriter {
-    fn create_map(
-        &mut self,
-        settings: &MappingConfig,
-        _label: usize,
-    ) -> Result<Arc<SharedMap>, TrackError> {
-        let id = MapId(self.mappers.len() as u32);
-        self.mappers.insert(id, LocalMapper::new(settings.clone()));
-        Ok(Arc::new(SharedMap::new(id)))
-    }
-
-    fn request(&mut self, map: &SharedMap, request: MapRequest) -> Result<MapReply, TrackError> {
-        let mapper = self
-            .mappers
-            .get_mut(&map.id())
-            .ok_or(TrackError::UnknownMap(map.id()))?;
-        mapper.handle(&mut map.write(), request)
-    }
 }

@@ -13,6 +13,7 @@
 //! [`tracking`].
 
 pub mod atlas;
+pub mod error;
 pub mod frame;
 pub mod local_mapping;
 pub mod map;
@@ -23,12 +24,13 @@ pub mod sighting;
 pub mod tracking;
 pub mod triangulation;
 
-pub use atlas::{InlineWriter, MapId, MapWriter, SharedMap};
+pub use atlas::{MapWriter, SharedMap};
+pub use error::TrackError;
 pub use frame::{Descriptor, Frame, Keypoint, Rig};
 pub use local_mapping::{LocalMapper, MapReply, MapRequest, MappingConfig};
-pub use map::{Anchor, KeyFrame, KeyFrameId, Map, MapMarker, MapPoint, MapPointId};
+pub use map::{Anchor, KeyFrame, KeyFrameId, Map, MapId, MapMarker, MapPoint, MapPointId};
 pub use sighting::MarkerSighting;
 pub use tracking::{
-    ExtractedFrame, FrameResult, StageTimes, TrackError, Tracker, TrackerConfig, TrackingState,
+    ExtractedFrame, FrameResult, StageTimes, Tracker, TrackerConfig, TrackingState,
 };
 pub use vsgraphs_optim::{DepthResidual, Pinhole, Se3};

@@ -8,11 +8,11 @@
 //! points culling watches, a bundle adjustment being solved in the background), so a map's
 //! mapping goes on wherever its requests come from.
 
+use crate::error::TrackError;
 use crate::frame::{Frame, Rig};
 use crate::map::{KeyFrameId, Map, MapPointId};
 use crate::mapping::{self, LocalBaJob, SolvedLocalBa};
 use crate::markers;
-use crate::tracking::TrackError;
 use crate::triangulation;
 use std::sync::mpsc;
 use std::time::Duration;

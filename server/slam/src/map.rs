@@ -8,6 +8,10 @@ use std::collections::BTreeMap;
 use vsgraphs_optim::factors::marker::marker_corners;
 use vsgraphs_optim::Se3;
 
+/// A map's id, unique among the maps of one writer (the server's: unique in the server).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, PartialOrd, Ord)]
+pub struct MapId(pub u32);
+
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, PartialOrd, Ord)]
 pub struct KeyFrameId(pub u32);
 

@@ -4,11 +4,9 @@
 //! The zenoh callbacks only look up the robot and enqueue bytes, so a slow or hostile robot can
 //! never stall zenoh's threads or another robot. Workers decode and detect (see `pipeline`).
 
-pub mod queue;
-
 use crate::config::Config;
+use crate::queue::{Arrival, Pushed};
 use crate::robots::{now_ns, ProcessingTimes, Registry, RobotEntry};
-use queue::{Arrival, Pushed};
 use std::panic::{catch_unwind, AssertUnwindSafe};
 use std::sync::atomic::Ordering;
 use std::sync::{Arc, Mutex};

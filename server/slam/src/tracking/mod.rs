@@ -29,7 +29,8 @@ mod local_map;
 mod matches;
 mod relocalisation;
 
-use crate::atlas::{MapId, MapWriter, SharedMap};
+use crate::atlas::{MapWriter, SharedMap};
+pub use crate::error::TrackError;
 use crate::frame::{Frame, Rig};
 use crate::local_mapping::{KeyframeRequest, MapReply, MapRequest, MappingConfig, PointStatistics};
 use crate::map::{Anchor, KeyFrameId, Map};
@@ -40,11 +41,9 @@ use matches::Tracked;
 use relocalisation::Relocaliser;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
-use thiserror::Error;
 use vsgraphs_optim::{DepthResidual, Pinhole, Se3};
 use vsgraphs_vision::depth::DepthImage;
 use vsgraphs_vision::orb::{OrbExtractor, OrbParams};
-use vsgraphs_vision::CvError;
 use vsgraphs_vision::GreyImage;
 
 /// Tracking settings; defaults are ORB-SLAM's for RGB-D where it has one.
@@ -181,20 +180,6 @@ pub struct FrameResult {
     /// Something worth a log line: a map started, tracking lost, relocalised.
     pub event: Option<String>,
     pub times: StageTimes,
-}
-
-#[derive(Debug, Error)]
-pub enum TrackError {
-    #[error(transparent)]
-    Features(#[from] CvError),
-    #[error("local bundle adjustment failed: {0}")]
-    LocalBa(#[from] vsgraphs_optim::SolveError),
-    #[error("the local bundle adjustment thread stopped")]
-    BaThreadStopped,
-    #[error("map {0:?} has no writer")]
-    UnknownMap(MapId),
-    #[error("the map's writer: {0}")]
-    Writer(String),
 }
 
 /// Tracks one robot's frames in the maps it started.

@@ -1,0 +1,19 @@
+//! What can go wrong in tracking and mapping, for a robot's frame to report.
+
+use crate::map::MapId;
+use thiserror::Error;
+use vsgraphs_vision::CvError;
+
+#[derive(Debug, Error)]
+pub enum TrackError {
+    #[error(transparent)]
+    Features(#[from] CvError),
+    #[error("local bundle adjustment failed: {0}")]
+    LocalBa(#[from] vsgraphs_optim::SolveError),
+    #[error("the local bundle adjustment thread stopped")]
+    BaThreadStopped,
+    #[error("map {0:?} has no writer")]
+    UnknownMap(MapId),
+    #[error("the map's writer: {0}")]
+    Writer(String),
+}
