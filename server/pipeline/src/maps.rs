@@ -253,6 +253,23 @@ mod tests {
     }
 
     #[test]
+    fn a_panic_in_a_writer_reaches_the_requester_and_the_writer_goes_on() {
+        let mut service = MapService::new();
+        let map = service.create_map(&settings(), 0).unwrap();
+        // Statistics of a point the map does not hold: the writer panics on the index.
+        let bad = PointStatistics {
+            visible: vec![vsgraphs_slam::MapPointId(99)],
+            found: Vec::new(),
+        };
+        let request = std::panic::AssertUnwindSafe(|| {
+            let _ = service.clone().request(&map, MapRequest::Flush(bad));
+        });
+        assert!(std::panic::catch_unwind(request).is_err());
+        let next = service.request(&map, MapRequest::Flush(PointStatistics::default()));
+        assert!(matches!(next, Ok(MapReply::Flushed { .. })), "{next:?}");
+    }
+
+    #[test]
     fn a_map_of_another_service_is_refused() {
         let mut ours = MapService::new();
         let mut theirs = MapService::new();
