@@ -133,7 +133,31 @@ function drawMap(view, robot) {
     const [x, , z] = k.world_from_camera.translation_m;
     ctx.fillRect(u(x) - 1.5, v(z) - 1.5, 3, 3);
   }
+  // Walls: a metre of each, across its markers' centre, seen from above (the normal's x–z part
+  // gives the wall's direction on the floor).
+  ctx.strokeStyle = "#8fd19e";
+  ctx.lineWidth = 3;
+  const markerAt = new Map(view.markers.map((m) => [m.id, m.world_from_marker.translation_m]));
+  for (const w of view.walls || []) {
+    const at = w.markers.map((id) => markerAt.get(id)).filter(Boolean);
+    if (!at.length) continue;
+    const cx = at.reduce((s, p) => s + p[0], 0) / at.length;
+    const cz = at.reduce((s, p) => s + p[2], 0) / at.length;
+    const [nx, , nz] = w.normal;
+    const len = Math.hypot(nx, nz) || 1;
+    const [dx, dz] = [-nz / len * 0.5, nx / len * 0.5];
+    ctx.beginPath();
+    ctx.moveTo(u(cx - dx), v(cz - dz));
+    ctx.lineTo(u(cx + dx), v(cz + dz));
+    ctx.stroke();
+  }
   ctx.font = "12px system-ui, sans-serif";
+  // Rooms and corridors: their names at their centres.
+  ctx.fillStyle = "#8fd19e";
+  for (const s of view.spaces || []) {
+    const [x, , z] = s.centre;
+    ctx.fillText(`${s.name} (${s.kind})`, u(x) - 20, v(z));
+  }
   for (const m of view.markers) {
     const [x, , z] = m.world_from_marker.translation_m;
     ctx.fillStyle = "#f29b30";
@@ -160,7 +184,7 @@ function drawMap(view, robot) {
     ctx.restore();
   }
   $("map-title").textContent =
-    `${selected} · map ${view.map} · ${view.keyframe_count} keyframes · ${view.point_count} points · ${view.marker_count} markers`;
+    `${selected} · map ${view.map} · ${view.keyframe_count} keyframes · ${view.point_count} points · ${view.marker_count} markers · ${(view.walls || []).length} walls · ${(view.spaces || []).length} rooms and corridors`;
 }
 
 async function refreshMap(robots) {

@@ -3,10 +3,11 @@
 //! tracking, mapping) without the network; then both scores: the trajectory against the walk,
 //! and the map's building model against the building's ground truth.
 
-use crate::metrics::Compare;
+use crate::metrics::{self, Compare};
 use crate::score::{self, Metric, Report};
-use crate::semantics::{self, Gates, MapAlignment, SemanticReport};
+use crate::semantics::{self, Gates, MapAlignment, Rigid, SemanticReport};
 use anyhow::Context;
+use nalgebra::Vector3;
 use serde::Serialize;
 use std::sync::mpsc;
 use vsgraphs_datasets::Trajectory;
@@ -14,6 +15,7 @@ use vsgraphs_pipeline::offline::{self, FrameSource, OfflineFrame, OfflineSummary
 use vsgraphs_pipeline::PipelineConfig;
 use vsgraphs_proto::model::BuildingModel;
 use vsgraphs_proto::DepthEncoding;
+use vsgraphs_semantics::Dictionary;
 use vsgraphs_sim::scenarios::Scenario;
 use vsgraphs_sim::sequence::render_frame;
 use vsgraphs_sim::wire::{camera_model, encode_frame, DEPTH_SCALE};
@@ -119,6 +121,10 @@ pub fn run(
     let reference = walk.trajectory(0.0, total);
     let truth: BuildingModel = serde_json::from_str(&building.ground_truth_json())
         .context("reading the building's ground truth as a model")?;
+    // The semantic dictionary the simulator writes for the building, as a robot's operator
+    // would give the server.
+    let dictionary = Dictionary::parse(&building.dictionary_v1().to_string())
+        .map_err(|e| anyhow::anyhow!("the building's dictionary: {e}"))?;
 
     // Frames are rendered and encoded on another thread, a few ahead of the pipeline.
     let (sender, receiver) = mpsc::sync_channel::<Result<OfflineFrame, String>>(4);
@@ -144,6 +150,7 @@ pub fn run(
             camera: &camera,
             depth_scale: DEPTH_SCALE,
             total,
+            dictionary: Some(&dictionary),
         };
         offline::run_frames(config, source, receiver.into_iter(), progress)
     })?;
@@ -177,11 +184,23 @@ pub fn run(
         .find(|v| Some(v.map) == last_map)
         .map(vsgraphs_pipeline::model::building_model)
         .unwrap_or_default();
-    let (semantics, semantics_error) =
-        match semantics::score(&truth, &model, MapAlignment::Markers, &Gates::default()) {
+    // The map's frame is the trajectory's: aligning the walk aligns the map without the
+    // markers' own errors.
+    let (semantics, semantics_error) = match trajectory_alignment(&reference, &estimate) {
+        Some(rigid) => (
+            Some(semantics::score_with(
+                &truth,
+                &model,
+                &rigid,
+                &Gates::default(),
+            )),
+            None,
+        ),
+        None => match semantics::score(&truth, &model, MapAlignment::Markers, &Gates::default()) {
             Ok(report) => (Some(report), None),
             Err(e) => (None, Some(e.to_string())),
-        };
+        },
+    };
     Ok(ScenarioRun {
         robot: walk.robot.clone(),
         frames: summary.frames,
@@ -247,4 +266,27 @@ pub fn print_table(run: &ScenarioRun) {
         (Some(report), _) => semantics::print_table(report),
         (None, e) => println!("semantics: not scored: {}", e.as_deref().unwrap_or("?")),
     }
+}
+
+/// The rigid transform that best maps the estimated positions onto the walk's at the same
+/// stamps; `None` with fewer than three.
+fn trajectory_alignment(reference: &Trajectory, estimate: &Trajectory) -> Option<Rigid> {
+    let pairs = metrics::associate(&reference.stamps, &estimate.stamps, 1e-3, 0.0).ok()?;
+    if pairs.len() < 3 {
+        return None;
+    }
+    let (to, from): (Vec<Vector3<f64>>, Vec<Vector3<f64>>) = pairs
+        .iter()
+        .map(|&(r, e)| {
+            (
+                reference.poses[r].translation.vector,
+                estimate.poses[e].translation.vector,
+            )
+        })
+        .unzip();
+    let similarity = metrics::umeyama(&from, &to, false).ok()?;
+    Some(Rigid {
+        rotation: similarity.rotation,
+        translation: similarity.translation,
+    })
 }

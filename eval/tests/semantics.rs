@@ -161,6 +161,67 @@ fn each_mistake_costs_what_it_should() {
 }
 
 #[test]
+fn entities_whose_markers_are_not_mapped_are_unseen_not_missed() {
+    let (_, truth) = ground_truth("seq01");
+    let mut map = truth.clone();
+    // The walk never mapped the first wall's markers: that wall and the room it bounds are
+    // gone from the map with them. Another wall is missed though its markers are mapped.
+    let unseen_wall = truth.walls[0].clone();
+    map.markers.retain(|m| !unseen_wall.markers.contains(&m.id));
+    let missed = map.walls.remove(1).markers;
+    map.walls.remove(0);
+    let bounded = |s: &ModelSpace| s.walls.contains(&unseen_wall.id.unwrap_or(0));
+    map.spaces.retain(|s| !bounded(s));
+    let report = score(&truth, &map, MapAlignment::None, &Gates::default()).unwrap();
+
+    let walls = kind(&report, "walls");
+    let n = truth.walls.len();
+    assert_eq!((walls.matched, walls.unseen.len()), (n - 2, 1));
+    assert_eq!(walls.unseen[0].reference, 0);
+    assert_eq!(walls.unseen[0].markers_not_mapped, unseen_wall.markers);
+    assert!(!missed.is_empty());
+    assert!((walls.recall_of_seen - (n - 2) as f64 / (n - 1) as f64).abs() < 1e-12);
+    let rooms = kind(&report, "rooms");
+    let bounding = truth.spaces.iter().filter(|s| bounded(s)).count();
+    assert_eq!((rooms.unseen.len(), rooms.recall_of_seen), (bounding, 1.0));
+    assert!(rooms.recall < 1.0);
+}
+
+#[test]
+fn a_wall_the_reference_lists_without_markers_is_measured_at_the_estimate_s_markers() {
+    let (json, truth) = ground_truth("seq05");
+    let building: serde_json::Value = serde_json::from_str(&json).unwrap();
+    // A corridor's end that only a door marker shows: the ground truth lists no markers on it.
+    let (w, door_marker) = building["markers"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .find_map(|m| {
+            let w = m["wall"].as_u64()? as usize;
+            (!m["doorway"].is_null() && truth.walls[w].markers.is_empty())
+                .then(|| (w, m["id"].as_i64().unwrap() as i32))
+        })
+        .expect("seq05 has a door-only wall");
+    let marker = truth.markers.iter().find(|m| m.id == door_marker).unwrap();
+    let at = Vector3::from(marker.world_from_marker.translation);
+    // The estimate: that wall tilted by 2° about its door marker, which it lists.
+    let mut map = truth.clone();
+    let tilt = UnitQuaternion::from_axis_angle(&Vector3::z_axis(), 2f64.to_radians());
+    let normal = tilt * Vector3::from(truth.walls[w].plane.normal);
+    map.walls[w].plane = vsgraphs_proto::model::ModelPlane {
+        normal: normal.into(),
+        offset: -normal.dot(&at),
+    };
+    map.walls[w].markers = vec![door_marker];
+    let report = score(&truth, &map, MapAlignment::None, &Gates::default()).unwrap();
+    let walls = kind(&report, "walls");
+    assert_eq!(walls.matched, truth.walls.len());
+    assert!((walls.errors["normal_deg"].max - 2.0).abs() < 1e-9);
+    // Through the door marker, on the reference plane: no offset there.
+    assert!(walls.errors["offset_m"].max < 1e-9);
+}
+
+#[test]
 fn the_command_prints_a_table_and_json() {
     let (json, truth) = ground_truth("seq01");
     let dir = tempfile::tempdir().unwrap();

@@ -189,12 +189,58 @@ pub struct MapMarker {
     pub observations: u32,
 }
 
-/// One map of a robot's Atlas as of its latest keyframe. `GET /api/v1/robots/{robot_id}/maps`
-/// lists them with only the counts; `.../maps/{map}` gives one whole.
+/// A wall of a map: one side of a wall, from the markers on it.
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+#[cfg_attr(feature = "openapi", derive(ToSchema))]
+pub struct MapWall {
+    pub id: u32,
+    /// `normal·x + offset = 0`, the normal pointing into the space the wall faces.
+    pub normal: [f64; 3],
+    pub offset: f64,
+    /// Ids of the markers on it.
+    pub markers: Vec<i32>,
+    /// The semantic dictionary's room or corridor whose wall it is, when it says.
+    #[serde(default)]
+    pub space: Option<String>,
+}
+
+/// Room or corridor.
+#[derive(Debug, Clone, Copy, Serialize, Deserialize, PartialEq, Eq)]
+#[cfg_attr(feature = "openapi", derive(ToSchema))]
+#[serde(rename_all = "lowercase")]
+pub enum SpaceKind {
+    Room,
+    Corridor,
+}
+
+/// A room or corridor of a map.
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+#[cfg_attr(feature = "openapi", derive(ToSchema))]
+pub struct MapSpace {
+    pub id: u32,
+    /// Its name in the semantic dictionary.
+    pub name: String,
+    pub kind: SpaceKind,
+    /// Metres, in the map's frame.
+    pub centre: [f64; 3],
+    /// Ids of its walls (a room's as two facing pairs).
+    pub walls: Vec<u32>,
+}
+
+/// A room or corridor of the semantic dictionary that the map does not hold (yet), and why.
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+#[cfg_attr(feature = "openapi", derive(ToSchema))]
+pub struct MissingSpace {
+    pub name: String,
+    pub why: String,
+}
+
+/// One map of a robot as of its latest keyframe. `GET /api/v1/robots/{robot_id}/maps` lists
+/// them with only the counts; `.../maps/{map}` gives one whole.
 #[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
 #[cfg_attr(feature = "openapi", derive(ToSchema))]
 pub struct MapView {
-    /// Index of the map in the robot's Atlas.
+    /// Index of the map among the robot's maps.
     pub map: u32,
     /// The stamp of the frame that last changed it (ns).
     pub updated_ns: u64,
@@ -212,6 +258,14 @@ pub struct MapView {
     /// Every marker landmark (empty in the list).
     #[serde(default)]
     pub markers: Vec<MapMarker>,
+    /// Walls from the markers, rooms and corridors from the semantic dictionary, and the
+    /// dictionary's spaces not found (empty in the list).
+    #[serde(default)]
+    pub walls: Vec<MapWall>,
+    #[serde(default)]
+    pub spaces: Vec<MapSpace>,
+    #[serde(default)]
+    pub missing_spaces: Vec<MissingSpace>,
 }
 
 /// One pose of `GET /api/v1/robots/{robot_id}/trajectory`: a tracked frame's pose relative to

@@ -1,6 +1,8 @@
 //! A virtual robot walks seq06 and streams over real zenoh to the real server, which processes
 //! every frame, tracks the robot through all of them, and reports the markers it detected: those
-//! the robot had in view, and no others.
+//! the robot had in view, and no others. With the building's semantic dictionary, its map's
+//! walls gather the mapped markers as the building hangs them, and the room appears once its
+//! four walls are mapped.
 
 use std::collections::BTreeSet;
 use std::sync::Arc;
@@ -14,9 +16,14 @@ use vsgraphs_tests::*;
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_simulated_robot_streams_seq06_and_the_server_reports_its_frames_and_markers() {
-    let test = TestServer::start().await;
     let scenario = Scenario::builtin("seq06").unwrap();
     let building = Building::from_plan(&scenario.plan).unwrap();
+    let dictionary = tempfile::NamedTempFile::new().unwrap();
+    std::fs::write(dictionary.path(), building.dictionary_v1().to_string()).unwrap();
+    let test = TestServer::start_with(|c| {
+        c.semantics.dictionary_file = dictionary.path().to_path_buf();
+    })
+    .await;
     let renderer = Arc::new(Renderer::new(
         &scenario.plan,
         &building,
@@ -83,7 +90,26 @@ async fn a_simulated_robot_streams_seq06_and_the_server_reports_its_frames_and_m
     let maps = test.client.maps("sim-1").await.unwrap();
     assert_eq!(maps.len(), 1, "{maps:?}");
     assert!(maps[0].points.is_empty() && maps[0].keyframes.is_empty());
-    let map = test.client.map("sim-1", 0, 500).await.unwrap();
+    // The writer publishes a keyframe's semantic layer after answering the tracker: wait until
+    // the last one has every marker on a wall (the assertions below say which did not).
+    let last = || async {
+        let map = test.client.map("sim-1", 0, 500).await.ok()?;
+        let on_walls: usize = map.walls.iter().map(|w| w.markers.len()).sum();
+        (map.keyframe_count == tracking.keyframes && on_walls == map.markers.len()).then_some(map)
+    };
+    let map = match tokio::time::timeout(Duration::from_secs(20), async {
+        loop {
+            if let Some(map) = last().await {
+                return map;
+            }
+            tokio::time::sleep(Duration::from_millis(50)).await;
+        }
+    })
+    .await
+    {
+        Ok(map) => map,
+        Err(_) => test.client.map("sim-1", 0, 500).await.unwrap(),
+    };
     assert!(map.points.len() <= 500 && !map.points.is_empty());
     assert_eq!(map.keyframes.len() as u64, map.keyframe_count);
     let mapped: BTreeSet<u32> = map.markers.iter().map(|m| m.id as u32).collect();
@@ -93,6 +119,37 @@ async fn a_simulated_robot_streams_seq06_and_the_server_reports_its_frames_and_m
     );
     let model = test.client.model("sim-1", 0).await.unwrap();
     assert_eq!(model.markers.len(), map.markers.len());
+    // Every mapped marker is on one wall of the map, and the markers of one wall of the map hang
+    // on one wall of the building.
+    let mut on_walls: Vec<u32> = map
+        .walls
+        .iter()
+        .flat_map(|w| w.markers.iter().map(|&id| id as u32))
+        .collect();
+    on_walls.sort_unstable();
+    assert_eq!(on_walls, mapped.iter().copied().collect::<Vec<_>>());
+    for wall in &map.walls {
+        let true_walls: BTreeSet<usize> = wall
+            .markers
+            .iter()
+            .map(|&id| building.markers[id as usize].wall)
+            .collect();
+        assert_eq!(true_walls.len(), 1, "{wall:?}");
+    }
+    // The Lab is a room once its four wall markers are mapped, and not before.
+    let lab = &building.spaces[0];
+    let lab_mapped = lab
+        .walls
+        .iter()
+        .flat_map(|&w| &building.walls[w].markers)
+        .all(|id| mapped.contains(id));
+    let rooms: Vec<&str> = map.spaces.iter().map(|s| s.name.as_str()).collect();
+    assert_eq!(
+        rooms.contains(&"Lab"),
+        lab_mapped,
+        "{rooms:?}, mapped {mapped:?}"
+    );
+    assert_eq!(model.walls.len(), map.walls.len());
     assert_eq!(tracking.markers, map.marker_count);
     eprintln!(
         "{frames} frames; markers in view {expected:?}; detected (id: frames) {:?}; mapped {mapped:?}",

@@ -12,8 +12,8 @@ use std::sync::Arc;
 use utoipa::OpenApi;
 use vsgraphs_proto::api::{
     ApiError, DistanceSource, FrameCounters, FrameDetections, Health, MapKeyframe, MapMarker,
-    MapView, MarkerDetection, MarkerPose, Pose, Presence, Rejection, RobotStatus, Timing,
-    TrackingState, TrackingStatus, TrajectoryPose,
+    MapSpace, MapView, MapWall, MarkerDetection, MarkerPose, MissingSpace, Pose, Presence,
+    Rejection, RobotStatus, SpaceKind, Timing, TrackingState, TrackingStatus, TrajectoryPose,
 };
 
 /// An error answer: a status code and a JSON [`ApiError`] body.
@@ -78,6 +78,10 @@ impl IntoResponse for Failure {
         MapView,
         MapKeyframe,
         MapMarker,
+        MapWall,
+        MapSpace,
+        SpaceKind,
+        MissingSpace,
         ApiError
     ))
 )]

@@ -1,6 +1,7 @@
 //! The server's one configuration file (TOML). `config/vsgraphs.toml` documents every field with
-//! its default; a test keeps that file and [`Config::default`] equal. The `[markers]` and
-//! `[tracking]` sections are the frame pipeline's ([`vsgraphs_pipeline::config`]).
+//! its default; a test keeps that file and [`Config::default`] equal. The `[markers]`,
+//! `[tracking]` and `[semantics]` sections are the frame pipeline's
+//! ([`vsgraphs_pipeline::config`]).
 
 use serde::{Deserialize, Serialize};
 use std::net::SocketAddr;
@@ -8,7 +9,7 @@ use std::path::Path;
 use thiserror::Error;
 use vsgraphs_pipeline::config::{read_toml, FileError, InvalidField};
 pub use vsgraphs_pipeline::config::{
-    DepthResidualSetting, MarkerConfig, PipelineConfig, TrackingConfig,
+    DepthResidualSetting, MarkerConfig, PipelineConfig, SemanticsConfig, TrackingConfig,
 };
 pub use vsgraphs_sdk::zenoh_config::ZenohSettings;
 
@@ -20,6 +21,7 @@ pub struct Config {
     pub ingest: IngestConfig,
     pub markers: MarkerConfig,
     pub tracking: TrackingConfig,
+    pub semantics: SemanticsConfig,
 }
 
 impl Default for Config {
@@ -33,6 +35,7 @@ impl Default for Config {
             ingest: IngestConfig::default(),
             markers: MarkerConfig::default(),
             tracking: TrackingConfig::default(),
+            semantics: SemanticsConfig::default(),
         }
     }
 }
@@ -102,6 +105,7 @@ impl Config {
         PipelineConfig {
             markers: self.markers.clone(),
             tracking: self.tracking.clone(),
+            semantics: self.semantics.clone(),
         }
     }
 

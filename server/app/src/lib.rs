@@ -41,7 +41,14 @@ impl Server {
     pub async fn start(config: Config) -> anyhow::Result<Self> {
         config.validate()?;
         // Fail now, not in the first robot's worker, if the marker dictionary cannot load.
-        let maps = MapService::new();
+        let dictionary = config
+            .semantics
+            .dictionary()
+            .context("reading the semantic dictionary")?;
+        for warning in dictionary.iter().flat_map(|d| &d.warnings) {
+            tracing::warn!(warning, "semantic dictionary");
+        }
+        let maps = MapService::with_semantics(config.semantics.enabled, dictionary);
         vsgraphs_pipeline::FrameProcessor::new(
             &config.markers,
             &config.tracking,

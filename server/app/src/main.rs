@@ -48,6 +48,10 @@ struct Overrides {
     /// Marker side length in metres.
     #[arg(long, global = true)]
     marker_side: Option<f64>,
+    /// The semantic dictionary (JSON, the reference's version 1 or 2): which markers bound which
+    /// room or corridor and open which door.
+    #[arg(long, global = true)]
+    semantic_dictionary: Option<PathBuf>,
 }
 
 #[derive(Subcommand)]
@@ -135,6 +139,9 @@ fn effective_config(cli: &Cli) -> anyhow::Result<Config> {
     }
     if let Some(side) = o.marker_side {
         config.markers.side_m = side;
+    }
+    if let Some(file) = &o.semantic_dictionary {
+        config.semantics.dictionary_file = file.clone();
     }
     config.validate()?;
     Ok(config)

@@ -8,7 +8,7 @@ use std::collections::{BTreeMap, HashMap, VecDeque};
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex, RwLock};
 use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
-use vsgraphs_pipeline::FrameTracking;
+use vsgraphs_pipeline::{FrameTracking, Snapshots};
 use vsgraphs_proto::api::{
     self, FrameCounters, FrameDetections, MapView, Presence, RobotStatus, Timing, TrackingStatus,
     TrajectoryPose,
@@ -55,8 +55,8 @@ struct RobotState {
     /// Every tracked pose as tracking gave it, with its anchor keyframe (136 bytes each: an
     /// hour at 30 Hz is under 15 MB).
     trajectory: Vec<(TrajectoryPose, Option<Anchor>)>,
-    /// The latest snapshot of each map of the robot's Atlas, by index.
-    maps: BTreeMap<u32, Arc<MapView>>,
+    /// Each map of the robot's Atlas by index, where its writer publishes its snapshots.
+    maps: BTreeMap<u32, Snapshots>,
 }
 
 impl RobotEntry {
@@ -165,8 +165,8 @@ impl RobotEntry {
         status.keyframes = tracking.keyframes as u64;
         status.map_points = tracking.map_points as u64;
         status.markers = tracking.markers as u64;
-        if let Some(view) = &tracking.map_view {
-            state.maps.insert(view.map, view.clone());
+        if let Some(snapshots) = &tracking.map_snapshots {
+            state.maps.insert(snapshots.latest().map, snapshots.clone());
         }
         if let Some(error) = &tracking.error {
             status.last_event = Some(format!("error: {error}"));
@@ -220,7 +220,7 @@ impl RobotEntry {
 
     /// The latest snapshot of every map of the robot's Atlas, by index.
     pub fn maps(&self) -> Vec<Arc<MapView>> {
-        self.state().maps.values().cloned().collect()
+        self.state().maps.values().map(Snapshots::latest).collect()
     }
 
     /// Every pose tracking gave this robot, oldest first, each moved with its anchor keyframe
@@ -230,7 +230,9 @@ impl RobotEntry {
         // Copied out, so the lock is not held while the poses are composed.
         let (trajectory, maps) = {
             let state = self.state();
-            (state.trajectory.clone(), state.maps.clone())
+            let maps: BTreeMap<u32, Arc<MapView>> =
+                state.maps.iter().map(|(&n, s)| (n, s.latest())).collect();
+            (state.trajectory.clone(), maps)
         };
         trajectory
             .iter()

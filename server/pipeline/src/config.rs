@@ -6,6 +6,7 @@ use serde::de::DeserializeOwned;
 use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
 use thiserror::Error;
+use vsgraphs_semantics::dictionary as semantic;
 use vsgraphs_slam::DepthResidual;
 use vsgraphs_vision::aruco::CornerRefinement;
 use vsgraphs_vision::dictionary::{DictionaryError, MarkerDictionary};
@@ -13,13 +14,44 @@ use vsgraphs_vision::dictionary::{DictionaryError, MarkerDictionary};
 /// The largest frame accepted on the wire by default, bytes (`[ingest] max_frame_bytes`).
 pub const DEFAULT_MAX_FRAME_BYTES: usize = 32 << 20;
 
-/// What the frame pipeline needs to know: how markers are detected and how robots are tracked.
-/// Other sections of the file are the server's and are not read here.
+/// What the frame pipeline needs to know: how markers are detected, how robots are tracked, and
+/// what the markers mean. Other sections of the file are the server's and are not read here.
 #[derive(Debug, Clone, PartialEq, Default, Serialize, Deserialize)]
 #[serde(default)]
 pub struct PipelineConfig {
     pub markers: MarkerConfig,
     pub tracking: TrackingConfig,
+    pub semantics: SemanticsConfig,
+}
+
+/// The S-Graph's semantic layer.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct SemanticsConfig {
+    /// Build walls, rooms and corridors from the maps' markers.
+    pub enabled: bool,
+    /// The semantic dictionary (the reference's JSON, version 1 or 2); empty for none (then
+    /// every marker is a wall marker and there are walls only).
+    pub dictionary_file: PathBuf,
+}
+
+impl Default for SemanticsConfig {
+    fn default() -> Self {
+        Self {
+            enabled: true,
+            dictionary_file: PathBuf::new(),
+        }
+    }
+}
+
+impl SemanticsConfig {
+    /// The dictionary the configuration names, read and checked (`None` when it names none).
+    pub fn dictionary(&self) -> Result<Option<semantic::Dictionary>, semantic::DictionaryError> {
+        if self.dictionary_file.as_os_str().is_empty() {
+            return Ok(None);
+        }
+        semantic::Dictionary::read(&self.dictionary_file).map(Some)
+    }
 }
 
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]

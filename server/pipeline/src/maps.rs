@@ -5,18 +5,20 @@
 //! decided (a map to start, a keyframe to insert, work to land: [`MapRequest`]) and wait for the
 //! answer, so a robot's frames are mapped in order and a run gives the same map live and
 //! offline. The writer runs local mapping on the map now; loop closing and the S-Graph join it
-//! there. After each request it publishes a snapshot ([`MapView`]) that readers (the API, the
-//! page, later the store) take without ever waiting for a writer. Trackers read the map itself
-//! between requests ([`SharedMap`]).
+//! there, and builds the map's semantic layer (walls, rooms and corridors: [`SemanticMap`]) from
+//! its markers and the service's semantic dictionary. After each request it publishes a
+//! snapshot ([`MapView`]) that readers (the API, the page, later the store) take without ever
+//! waiting for a writer. Trackers read the map itself between requests ([`SharedMap`]).
 
 use crate::model;
 use std::any::Any;
 use std::collections::BTreeMap;
 use std::panic::{catch_unwind, AssertUnwindSafe};
 use std::sync::atomic::{AtomicU32, Ordering};
-use std::sync::{mpsc, Arc, Mutex, MutexGuard};
+use std::sync::{mpsc, Arc, Mutex, MutexGuard, RwLock};
 use std::thread::JoinHandle;
 use vsgraphs_proto::api::MapView;
+use vsgraphs_semantics::{Dictionary, SemanticMap};
 use vsgraphs_slam::{
     LocalMapper, Map, MapId, MapReply, MapRequest, MapWriter, MappingConfig, SharedMap, TrackError,
 };
@@ -31,6 +33,42 @@ pub struct MapService {
 struct Inner {
     next_id: AtomicU32,
     maps: Mutex<BTreeMap<MapId, Arc<MapEntry>>>,
+    semantics: Arc<RwLock<Semantics>>,
+}
+
+/// The semantic layer's settings, which every writer reads at each request.
+#[derive(Clone)]
+struct Semantics {
+    enabled: bool,
+    dictionary: Option<Arc<Dictionary>>,
+}
+
+impl Default for Semantics {
+    fn default() -> Self {
+        Self {
+            enabled: true,
+            dictionary: None,
+        }
+    }
+}
+
+/// A map's snapshot slot, which its writer refills: readers that keep it see the map's newest
+/// snapshot without asking the service.
+#[derive(Clone)]
+pub struct Snapshots(Arc<Mutex<Arc<MapView>>>);
+
+impl Snapshots {
+    pub fn latest(&self) -> Arc<MapView> {
+        lock(&self.0).clone()
+    }
+}
+
+impl std::fmt::Debug for Snapshots {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_tuple("Snapshots")
+            .field(&self.latest().map)
+            .finish()
+    }
 }
 
 /// One map: the map, its writer's queue and thread, its latest snapshot.
@@ -62,8 +100,29 @@ fn lock<T>(mutex: &Mutex<T>) -> MutexGuard<'_, T> {
 }
 
 impl MapService {
+    /// A service whose maps get walls from their markers, without a semantic dictionary.
     pub fn new() -> Self {
         Self::default()
+    }
+
+    /// A service with its semantic layer `enabled` or not, reading markers by `dictionary`.
+    pub fn with_semantics(enabled: bool, dictionary: Option<Dictionary>) -> Self {
+        let service = Self::default();
+        *service
+            .inner
+            .semantics
+            .write()
+            .unwrap_or_else(|p| p.into_inner()) = Semantics {
+            enabled,
+            dictionary: dictionary.map(Arc::new),
+        };
+        service
+    }
+
+    /// Where a map's snapshots appear: [`Snapshots::latest`] is always its newest.
+    pub fn snapshots(&self, id: MapId) -> Option<Snapshots> {
+        let entry = lock(&self.inner.maps).get(&id).cloned()?;
+        Some(Snapshots(entry.snapshot.clone()))
     }
 
     /// The latest snapshot of a map.
@@ -131,6 +190,8 @@ impl MapWriter for MapService {
             &Map::default(),
             label,
             0,
+            None,
+            None,
         ))));
         let (sender, commands) = mpsc::channel();
         let writer = Writer {
@@ -138,6 +199,7 @@ impl MapWriter for MapService {
             mapper: LocalMapper::new(settings.clone()),
             label,
             snapshot: snapshot.clone(),
+            semantics: self.inner.semantics.clone(),
         };
         let thread = std::thread::Builder::new()
             .name(format!("map-{}", id.0))
@@ -183,6 +245,7 @@ struct Writer {
     mapper: LocalMapper,
     label: usize,
     snapshot: Arc<Mutex<Arc<MapView>>>,
+    semantics: Arc<RwLock<Semantics>>,
 }
 
 impl Writer {
@@ -191,31 +254,90 @@ impl Writer {
         let _entered = span.enter();
         for Command { request, reply } in commands {
             let outcome = catch_unwind(AssertUnwindSafe(|| self.handle(request)));
-            let answer = match outcome {
-                Ok(result) => result.map_err(Failure::Error),
+            let (answer, stamp) = match outcome {
+                Ok(Ok((done, stamp))) => (Ok(done), Some(stamp)),
+                Ok(Err(error)) => (Err(Failure::Error(error)), None),
                 Err(payload) => {
                     tracing::error!("mapping panicked; the request is answered with the panic");
-                    Err(Failure::Panic(payload))
+                    (Err(Failure::Panic(payload)), None)
                 }
             };
+            // The map's geometry is published before the answer (the trajectory and the API
+            // read keyframe poses from it: cheap), its semantic layer after (milliseconds to
+            // tens of them on a large map), so the tracker goes on meanwhile; the map cannot
+            // change under it, this thread being its only writer. A flush publishes both first:
+            // whoever flushes reads the final snapshot next.
+            let flush = matches!(stamp, Some(None));
+            if let Some(stamp) = stamp {
+                self.guarded("the map's snapshot", |w| w.publish_geometry(stamp));
+                if flush {
+                    self.guarded("the map's semantic layer", Self::publish_semantics);
+                }
+            }
             // The robot's worker may have gone (the server stopping): nobody to tell.
             let _ = reply.send(answer);
+            if stamp.is_some() && !flush {
+                self.guarded("the map's semantic layer", Self::publish_semantics);
+            }
         }
     }
 
-    /// Runs one request, then publishes the map as it left it.
-    fn handle(&mut self, request: MapRequest) -> Result<MapReply, TrackError> {
+    /// Runs one request; returns its answer and the stamp the map is now at.
+    fn handle(&mut self, request: MapRequest) -> Result<(MapReply, Option<u64>), TrackError> {
         let stamp = match &request {
             MapRequest::Start { frame, .. } => Some(frame.timestamp_ns),
             MapRequest::Insert(insert) => Some(insert.frame.timestamp_ns),
             MapRequest::Flush(_) => None,
         };
-        let mut map = self.map.write();
-        let reply = self.mapper.handle(&mut map, request)?;
-        let updated_ns = stamp.unwrap_or_else(|| lock(&self.snapshot).updated_ns);
-        let view = Arc::new(model::map_view(&map, self.label, updated_ns));
-        *lock(&self.snapshot) = view;
-        Ok(reply)
+        let reply = self.mapper.handle(&mut self.map.write(), request)?;
+        Ok((reply, stamp))
+    }
+
+    /// Runs `publish`, a panic in it logged: the last snapshot stays.
+    fn guarded(&mut self, what: &str, publish: impl FnOnce(&mut Self)) {
+        if catch_unwind(AssertUnwindSafe(|| publish(self))).is_err() {
+            tracing::error!("building {what} panicked; the last snapshot stays");
+        }
+    }
+
+    /// Publishes the map as the last request left it (stamped `stamp`, else as before), with
+    /// the semantic layer of the snapshot before.
+    fn publish_geometry(&mut self, stamp: Option<u64>) {
+        let map = self.map.read();
+        let last = lock(&self.snapshot).clone();
+        let updated_ns = stamp.unwrap_or(last.updated_ns);
+        let mut view = model::map_view(&map, self.label, updated_ns, None, None);
+        view.walls = last.walls.clone();
+        view.spaces = last.spaces.clone();
+        view.missing_spaces = last.missing_spaces.clone();
+        *lock(&self.snapshot) = Arc::new(view);
+    }
+
+    /// Rebuilds the map's semantic layer and publishes it in the latest snapshot.
+    fn publish_semantics(&mut self) {
+        let started = std::time::Instant::now();
+        let settings = self
+            .semantics
+            .read()
+            .unwrap_or_else(|p| p.into_inner())
+            .clone();
+        let dictionary = settings.dictionary.as_deref();
+        let semantic = settings.enabled.then(|| {
+            let map = self.map.read();
+            SemanticMap::build(
+                &model::marker_poses(&map),
+                &model::live_points(&map),
+                dictionary,
+            )
+        });
+        let mut view = (*lock(&self.snapshot).clone()).clone();
+        model::set_semantics(&mut view, semantic.as_ref(), dictionary);
+        tracing::debug!(
+            ms = started.elapsed().as_secs_f64() * 1e3,
+            walls = view.walls.len(),
+            "semantic layer published"
+        );
+        *lock(&self.snapshot) = Arc::new(view);
     }
 }
 

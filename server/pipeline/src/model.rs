@@ -1,10 +1,13 @@
 //! What a robot's maps look like from outside: snapshots of a map for the API and the page
-//! (keyframes, decimated points, marker landmarks), and the building model (the `proto::model`
-//! JSON that `vsgraphs-eval semantics` scores). Markers are its only layer so far; walls,
-//! doorways, rooms and corridors join it with the S-Graph.
+//! (keyframes, decimated points, marker landmarks, walls, rooms and corridors), and the building
+//! model (the `proto::model` JSON that `vsgraphs-eval semantics` scores). Doorways join it with
+//! the rest of the S-Graph.
 
-use vsgraphs_proto::api::{MapKeyframe, MapMarker, MapView, Pose};
-use vsgraphs_proto::model::{self, BuildingModel, ModelMarker};
+use vsgraphs_proto::api::{
+    self, MapKeyframe, MapMarker, MapSpace, MapView, MapWall, MissingSpace, Pose,
+};
+use vsgraphs_proto::model::{self, BuildingModel, ModelMarker, ModelPlane, ModelSpace, ModelWall};
+use vsgraphs_semantics::{Dictionary, SemanticMap};
 use vsgraphs_slam::{Map, Se3};
 
 /// Points a snapshot keeps at most (evenly decimated); the API thins them further on request.
@@ -20,8 +23,15 @@ pub fn api_pose(pose: &Se3) -> Pose {
     }
 }
 
-/// A snapshot of `map` (index `index` of its Atlas) after the frame stamped `updated_ns`.
-pub fn map_view(map: &Map, index: usize, updated_ns: u64) -> MapView {
+/// A snapshot of `map` (the robot's map `index`) after the frame stamped `updated_ns`, with its
+/// semantic layer as `dictionary` reads it (none when `semantics` is `None`: the layer is off).
+pub fn map_view(
+    map: &Map,
+    index: usize,
+    updated_ns: u64,
+    semantics: Option<&SemanticMap>,
+    dictionary: Option<&Dictionary>,
+) -> MapView {
     let live: Vec<[f32; 3]> = map
         .points
         .iter()
@@ -29,7 +39,7 @@ pub fn map_view(map: &Map, index: usize, updated_ns: u64) -> MapView {
         .map(|p| p.position.map(|x| x as f32).into())
         .collect();
     let point_count = live.len() as u64;
-    MapView {
+    let mut view = MapView {
         map: index as u32,
         updated_ns,
         keyframe_count: map.live_keyframes() as u64,
@@ -56,7 +66,87 @@ pub fn map_view(map: &Map, index: usize, updated_ns: u64) -> MapView {
                 observations: m.observations.len() as u32,
             })
             .collect(),
-    }
+        walls: Vec::new(),
+        spaces: Vec::new(),
+        missing_spaces: Vec::new(),
+    };
+    set_semantics(&mut view, semantics, dictionary);
+    view
+}
+
+/// The markers of `map` with their poses, as the semantic layer takes them.
+pub fn marker_poses(map: &Map) -> Vec<(i32, Se3)> {
+    map.markers
+        .values()
+        .map(|m| (m.id, m.world_from_marker))
+        .collect()
+}
+
+/// The positions of the map's points (not the ones culled as bad).
+pub fn live_points(map: &Map) -> Vec<vsgraphs_semantics::MapPoint> {
+    map.points
+        .iter()
+        .filter(|p| !p.bad)
+        .map(|p| vsgraphs_semantics::MapPoint {
+            position: p.position,
+            toward_cameras: p.normal,
+        })
+        .collect()
+}
+
+/// A map's walls, rooms and corridors in its snapshot (none when the layer is off: `None`);
+/// names from `dictionary`.
+pub fn set_semantics(
+    view: &mut MapView,
+    semantics: Option<&SemanticMap>,
+    dictionary: Option<&Dictionary>,
+) {
+    let Some(semantics) = semantics else {
+        view.walls.clear();
+        view.spaces.clear();
+        view.missing_spaces.clear();
+        return;
+    };
+    let name = |entry: usize| {
+        dictionary
+            .and_then(|d| d.spaces.get(entry))
+            .map_or_else(|| format!("space {entry}"), |s| s.name.clone())
+    };
+    view.walls = semantics
+        .walls
+        .iter()
+        .enumerate()
+        .map(|(i, w)| MapWall {
+            id: i as u32,
+            normal: w.plane.normal.into_inner().into(),
+            offset: w.plane.offset,
+            markers: w.markers.clone(),
+            space: w.space.map(name),
+        })
+        .collect();
+    view.spaces = semantics
+        .spaces
+        .iter()
+        .enumerate()
+        .map(|(i, s)| MapSpace {
+            id: i as u32,
+            name: name(s.entry),
+            kind: match s.kind {
+                vsgraphs_semantics::SpaceKind::Room => api::SpaceKind::Room,
+                vsgraphs_semantics::SpaceKind::Corridor => api::SpaceKind::Corridor,
+            },
+            centre: s.centre.into(),
+            walls: s.walls.iter().map(|&w| w as u32).collect(),
+        })
+        .collect();
+    view.missing_spaces = semantics
+        .missing
+        .iter()
+        .map(|m| MissingSpace {
+            name: name(m.entry),
+            why: m.why.clone(),
+        })
+        .collect();
 }
 
 /// The `Se3` an API pose stands for (the quaternion renormalised).
@@ -95,31 +185,33 @@ pub fn decimate<T: Clone>(items: &[T], at_most: usize) -> Vec<T> {
 /// A snapshot with its points thinned to at most `max_points` and, unless `lists`, without
 /// keyframes, points or markers (the list of maps shows counts only). Copies no list it drops.
 pub fn trimmed(view: &MapView, max_points: usize, lists: bool) -> MapView {
+    fn kept<T: Clone>(list: &[T], lists: bool) -> Vec<T> {
+        if lists {
+            list.to_vec()
+        } else {
+            Vec::new()
+        }
+    }
     MapView {
         map: view.map,
         updated_ns: view.updated_ns,
         keyframe_count: view.keyframe_count,
         point_count: view.point_count,
         marker_count: view.marker_count,
-        keyframes: if lists {
-            view.keyframes.clone()
-        } else {
-            Vec::new()
-        },
+        keyframes: kept(&view.keyframes, lists),
         points: if lists {
             decimate(&view.points, max_points)
         } else {
             Vec::new()
         },
-        markers: if lists {
-            view.markers.clone()
-        } else {
-            Vec::new()
-        },
+        markers: kept(&view.markers, lists),
+        walls: kept(&view.walls, lists),
+        spaces: kept(&view.spaces, lists),
+        missing_spaces: kept(&view.missing_spaces, lists),
     }
 }
 
-/// The building model of a map: its marker landmarks (the only layer mapped so far).
+/// The building model of a map: its marker landmarks, walls, rooms and corridors.
 pub fn building_model(view: &MapView) -> BuildingModel {
     BuildingModel {
         markers: view
@@ -133,7 +225,32 @@ pub fn building_model(view: &MapView) -> BuildingModel {
                 },
             })
             .collect(),
-        ..BuildingModel::default()
+        walls: view
+            .walls
+            .iter()
+            .map(|w| ModelWall {
+                id: Some(w.id),
+                plane: ModelPlane {
+                    normal: w.normal,
+                    offset: w.offset,
+                },
+                markers: w.markers.clone(),
+            })
+            .collect(),
+        doorways: Vec::new(),
+        spaces: view
+            .spaces
+            .iter()
+            .map(|s| ModelSpace {
+                id: Some(s.id),
+                kind: match s.kind {
+                    api::SpaceKind::Room => model::SpaceKind::Room,
+                    api::SpaceKind::Corridor => model::SpaceKind::Corridor,
+                },
+                centre: s.centre,
+                walls: s.walls.clone(),
+            })
+            .collect(),
     }
 }
 

@@ -12,6 +12,7 @@ use std::time::{Duration, Instant};
 use vsgraphs_datasets::{load_frame, Dataset, Trajectory};
 use vsgraphs_proto::api::{MapView, TrackingState, TrajectoryPose};
 use vsgraphs_proto::{CameraModel, ColourImage, DepthEncoding, DepthImage, Message, RgbdFrame};
+use vsgraphs_semantics::Dictionary;
 
 /// The robot id offline frames carry.
 pub const OFFLINE_ROBOT: &str = "offline";
@@ -65,6 +66,26 @@ pub fn quantile(values: &[f64], q: f64) -> f64 {
     }
 }
 
+/// The semantic dictionary a recorded building carries beside its frames or in the folder above
+/// them (one robot's of several) ([`DATASET_DICTIONARY`], as the simulator writes it), for when
+/// the configuration names none.
+fn dataset_dictionary(dataset: &Dataset, enabled: bool) -> anyhow::Result<Option<Dictionary>> {
+    let beside = dataset.root.join(DATASET_DICTIONARY);
+    let above = dataset.root.parent().map(|p| p.join(DATASET_DICTIONARY));
+    let Some(path) = std::iter::once(beside)
+        .chain(above)
+        .find(|p| enabled && p.is_file())
+    else {
+        return Ok(None);
+    };
+    tracing::info!(path = %path.display(), "semantic dictionary of the dataset");
+    Ok(Some(Dictionary::read(&path)?))
+}
+
+/// The file in a dataset's folder that offline runs read as its semantic dictionary when the
+/// configuration names none.
+pub const DATASET_DICTIONARY: &str = "dictionary.json";
+
 /// One frame as a robot would send it, with its source's stamp.
 pub struct OfflineFrame {
     pub timestamp_ns: u64,
@@ -101,10 +122,18 @@ pub fn run(
             },
         )
     });
+    let dictionary = match config.semantics.dictionary()? {
+        Some(dictionary) => Some(dictionary),
+        None => dataset_dictionary(dataset, config.semantics.enabled)?,
+    };
+    for warning in dictionary.iter().flat_map(|d| &d.warnings) {
+        tracing::warn!(warning, "semantic dictionary");
+    }
     let source = FrameSource {
         camera: &dataset.camera,
         depth_scale: dataset.depth_scale,
         total,
+        dictionary: dictionary.as_ref(),
     };
     run_frames(config, source, frames, progress)
 }
@@ -115,6 +144,8 @@ pub struct FrameSource<'a> {
     pub depth_scale: f64,
     /// Frames expected (for progress).
     pub total: usize,
+    /// The semantic dictionary of the place (when the semantic layer is on).
+    pub dictionary: Option<&'a Dictionary>,
 }
 
 /// Runs encoded frames (or the reasons they could not be read) through the pipeline, in order.
@@ -130,7 +161,7 @@ pub fn run_frames(
         &config.markers,
         &config.tracking,
         DEFAULT_MAX_FRAME_BYTES,
-        MapService::new(),
+        MapService::with_semantics(config.semantics.enabled, source.dictionary.cloned()),
     )?;
     let started = Instant::now();
     let total = source.total;

@@ -4,7 +4,7 @@
 //! a [`Rejection`] with a reason code and a readable message.
 
 use crate::config::{load_dictionary, MarkerConfig, TrackingConfig};
-use crate::maps::MapService;
+use crate::maps::{MapService, Snapshots};
 use crate::validate::{self, decode_rejection, reject, FrameHeader, Reason, Rejection};
 use std::sync::Arc;
 use std::time::{Duration, Instant};
@@ -50,8 +50,9 @@ pub struct FrameTracking {
     pub markers: usize,
     /// Why the frame could not be tracked, when it is an error rather than a lost track.
     pub error: Option<String>,
-    /// A snapshot of the active map when the frame changed it (a keyframe was made).
-    pub map_view: Option<Arc<MapView>>,
+    /// The active map's snapshots when the frame changed it (a keyframe was made): its writer
+    /// publishes the map as the keyframe left it there, after answering the tracker.
+    pub map_snapshots: Option<Snapshots>,
 }
 
 /// Frame processing state of one worker thread (OpenCV objects are per thread).
@@ -302,11 +303,11 @@ fn track(
                 let map = m.read();
                 (map.live_keyframes(), map.live_points(), map.markers.len())
             });
-            // A keyframe changed the map: its writer has published the map as it left it.
+            // A keyframe changed the map: its writer publishes the map as it left it.
             let changed = result.as_ref().is_some_and(|r| r.keyframe.is_some());
-            let map_view = active
+            let map_snapshots = active
                 .filter(|_| changed)
-                .and_then(|(_, m)| maps.snapshot(m.id()));
+                .and_then(|(_, m)| maps.snapshots(m.id()));
             FrameTracking {
                 state,
                 result,
@@ -315,7 +316,7 @@ fn track(
                 map_points,
                 markers,
                 error,
-                map_view,
+                map_snapshots,
             }
         };
     let extracted = match extracted {
