@@ -151,7 +151,27 @@ function drawMap(view, robot) {
     ctx.lineTo(u(cx + dx), v(cz + dz));
     ctx.stroke();
   }
+  // Doorways: the opening's width across its threshold (the doorway's x axis lies along the
+  // wall), named.
+  ctx.strokeStyle = "#d98cf2";
+  ctx.lineWidth = 5;
+  for (const d of view.doorways || []) {
+    const [x, , z] = d.world_from_doorway.translation_m;
+    const [qx, qy, qz, qw] = d.world_from_doorway.rotation_xyzw;
+    const ax = 1 - 2 * (qy * qy + qz * qz), az = 2 * (qx * qz - qw * qy);
+    const len = Math.hypot(ax, az) || 1;
+    const [dx, dz] = [ax / len * d.width_m / 2, az / len * d.width_m / 2];
+    ctx.beginPath();
+    ctx.moveTo(u(x - dx), v(z - dz));
+    ctx.lineTo(u(x + dx), v(z + dz));
+    ctx.stroke();
+  }
   ctx.font = "12px system-ui, sans-serif";
+  ctx.fillStyle = "#d98cf2";
+  for (const d of view.doorways || []) {
+    const [x, , z] = d.world_from_doorway.translation_m;
+    if (d.name) ctx.fillText(d.name, u(x) + 6, v(z) + 14);
+  }
   // Rooms and corridors: their names at their centres.
   ctx.fillStyle = "#8fd19e";
   for (const s of view.spaces || []) {
@@ -184,7 +204,8 @@ function drawMap(view, robot) {
     ctx.restore();
   }
   $("map-title").textContent =
-    `${selected} · map ${view.map} · ${view.keyframe_count} keyframes · ${view.point_count} points · ${view.marker_count} markers · ${(view.walls || []).length} walls · ${(view.spaces || []).length} rooms and corridors`;
+    `${selected} · map ${view.map} · ${view.keyframe_count} keyframes · ${view.point_count} points · ${view.marker_count} markers · ${(view.walls || []).length} walls · ${(view.doorways || []).length} doorways · ${(view.spaces || []).length} rooms and corridors` +
+    (robot && robot.tracking && robot.tracking.space ? ` · ${selected} is in ${robot.tracking.space.name}` : "");
 }
 
 async function refreshMap(robots) {

@@ -163,6 +163,21 @@ pub struct TrackingStatus {
     /// Mean local bundle adjustment solve time per frame, ms (on its own thread).
     #[serde(default)]
     pub local_ba_ms_mean: Option<f64>,
+    /// The active map's id on the server (`/api/v1/maps/{map_id}`).
+    #[serde(default)]
+    pub map_id: Option<u32>,
+    /// The room or corridor the latest pose lies in, as the map's semantic layer has it now.
+    #[serde(default)]
+    pub space: Option<SpaceRef>,
+}
+
+/// A room or corridor named by its map's id for it and its name.
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+#[cfg_attr(feature = "openapi", derive(ToSchema))]
+pub struct SpaceRef {
+    pub id: u32,
+    pub name: String,
+    pub kind: SpaceKind,
 }
 
 /// A keyframe of a map, in `GET /api/v1/robots/{robot_id}/maps/{map}`.
@@ -179,7 +194,7 @@ pub struct MapKeyframe {
 }
 
 /// A marker landmark of a map.
-#[derive(Debug, Clone, Copy, Serialize, Deserialize, PartialEq)]
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
 #[cfg_attr(feature = "openapi", derive(ToSchema))]
 pub struct MapMarker {
     pub id: i32,
@@ -187,6 +202,9 @@ pub struct MapMarker {
     pub world_from_marker: Pose,
     /// Keyframes that saw it.
     pub observations: u32,
+    /// Their ids (empty in a list of maps).
+    #[serde(default)]
+    pub keyframes: Vec<u32>,
 }
 
 /// A wall of a map: one side of a wall, from the markers on it.
@@ -225,6 +243,37 @@ pub struct MapSpace {
     pub centre: [f64; 3],
     /// Ids of its walls (a room's as two facing pairs).
     pub walls: Vec<u32>,
+    /// Ids of the doorways that open into it.
+    #[serde(default)]
+    pub doorways: Vec<u32>,
+    /// Ids of the spaces a doorway of it leads to.
+    #[serde(default)]
+    pub neighbours: Vec<u32>,
+}
+
+/// A doorway of a map: the middle of an opening that door markers label.
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+#[cfg_attr(feature = "openapi", derive(ToSchema))]
+pub struct MapDoorway {
+    pub id: u32,
+    /// The semantic dictionary's name of the door, when it names one.
+    #[serde(default)]
+    pub name: Option<String>,
+    /// The middle of its threshold (the foot of the opening, on the floor); z across the
+    /// opening, y up.
+    pub world_from_doorway: Pose,
+    /// The opening's width, metres.
+    pub width_m: f64,
+    /// Ids of its door markers.
+    pub markers: Vec<i32>,
+    /// Ids of the walls it opens in.
+    pub walls: Vec<u32>,
+    /// The rooms and corridors it joins, by name (as the dictionary lists its markers).
+    #[serde(default)]
+    pub between: Vec<String>,
+    /// The ids of those of them the map holds.
+    #[serde(default)]
+    pub spaces: Vec<u32>,
 }
 
 /// A room or corridor of the semantic dictionary that the map does not hold (yet), and why.
@@ -240,6 +289,10 @@ pub struct MissingSpace {
 #[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
 #[cfg_attr(feature = "openapi", derive(ToSchema))]
 pub struct MapView {
+    /// The map's id on the server, the same for every robot that maps in it
+    /// (`/api/v1/maps/{map_id}`).
+    #[serde(default)]
+    pub id: u32,
     /// Index of the map among the robot's maps.
     pub map: u32,
     /// The stamp of the frame that last changed it (ns).
@@ -258,14 +311,124 @@ pub struct MapView {
     /// Every marker landmark (empty in the list).
     #[serde(default)]
     pub markers: Vec<MapMarker>,
-    /// Walls from the markers, rooms and corridors from the semantic dictionary, and the
-    /// dictionary's spaces not found (empty in the list).
+    /// Walls from the markers, doorways from the door markers, rooms and corridors from the
+    /// semantic dictionary, and the dictionary's spaces not found (empty in the list).
     #[serde(default)]
     pub walls: Vec<MapWall>,
+    #[serde(default)]
+    pub doorways: Vec<MapDoorway>,
     #[serde(default)]
     pub spaces: Vec<MapSpace>,
     #[serde(default)]
     pub missing_spaces: Vec<MissingSpace>,
+}
+
+/// The semantic dictionary the server reads markers by, `GET /api/v1/dictionary`.
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+#[cfg_attr(feature = "openapi", derive(ToSchema))]
+pub struct DictionaryInfo {
+    /// 1: rooms list their wall markers; 2: a room names one meta marker.
+    pub version: u32,
+    pub spaces: Vec<DictionarySpace>,
+    pub doors: Vec<DictionaryDoor>,
+    /// Mistakes that leave it usable, each with what was made of it.
+    pub warnings: Vec<String>,
+}
+
+/// A room or corridor of the semantic dictionary.
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+#[cfg_attr(feature = "openapi", derive(ToSchema))]
+pub struct DictionarySpace {
+    pub name: String,
+    pub kind: SpaceKind,
+    /// Version 1: its wall markers, a group of 4 for a room, a pair per corridor section.
+    pub wall_groups: Vec<Vec<i32>>,
+    /// Version 2: the marker that names it.
+    pub meta_marker: Option<i32>,
+    pub door_markers: Vec<i32>,
+}
+
+/// A named door of the semantic dictionary and its marker.
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+#[cfg_attr(feature = "openapi", derive(ToSchema))]
+pub struct DictionaryDoor {
+    pub name: String,
+    pub marker: i32,
+}
+
+/// A map of the server in `GET /api/v1/maps`: its size, semantic layer and robots.
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+#[cfg_attr(feature = "openapi", derive(ToSchema))]
+pub struct MapSummary {
+    pub id: u32,
+    /// The robots that have mapped in it.
+    pub robots: Vec<String>,
+    /// The stamp of the frame that last changed it (ns).
+    pub updated_ns: u64,
+    pub keyframes: u64,
+    pub points: u64,
+    pub markers: u64,
+    pub walls: u64,
+    pub doorways: u64,
+    pub rooms: u64,
+    pub corridors: u64,
+}
+
+/// The way from one room or corridor to another, `GET /api/v1/maps/{map_id}/route`: the spaces
+/// passed, both ends included, and the doorway between each two.
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+#[cfg_attr(feature = "openapi", derive(ToSchema))]
+pub struct Route {
+    pub spaces: Vec<SpaceRef>,
+    pub doorways: Vec<u32>,
+    /// From centre to doorway to centre, metres.
+    pub length_m: f64,
+}
+
+/// A layer of the Situational Graph.
+#[derive(Debug, Clone, Copy, Serialize, Deserialize, PartialEq, Eq)]
+#[cfg_attr(feature = "openapi", derive(ToSchema))]
+#[serde(rename_all = "snake_case")]
+pub enum GraphLayer {
+    /// Keyframes and markers.
+    Keyframes,
+    /// Walls and doorways.
+    Structure,
+    /// Rooms and corridors.
+    Spaces,
+}
+
+/// A node of the Situational Graph: `id` is `kind/n`, e.g. `wall/3`.
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+#[cfg_attr(feature = "openapi", derive(ToSchema))]
+pub struct GraphNode {
+    pub id: String,
+    pub layer: GraphLayer,
+    /// `keyframe`, `marker`, `wall`, `doorway`, `room` or `corridor`.
+    pub kind: String,
+    #[serde(default)]
+    pub name: Option<String>,
+    /// Where it is in the map, metres (a wall: its markers' middle).
+    pub position: [f64; 3],
+}
+
+/// An edge of the Situational Graph, from the lower layer's node to the upper's (or between
+/// keyframes that follow each other).
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+#[cfg_attr(feature = "openapi", derive(ToSchema))]
+pub struct GraphEdge {
+    pub from: String,
+    pub to: String,
+}
+
+/// The whole Situational Graph of a map, `GET /api/v1/maps/{map_id}/graph`: keyframes and
+/// markers, walls and doorways, rooms and corridors, and the edges between them.
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+#[cfg_attr(feature = "openapi", derive(ToSchema))]
+pub struct SceneGraph {
+    pub map_id: u32,
+    pub nodes: Vec<GraphNode>,
+    pub edges: Vec<GraphEdge>,
 }
 
 /// One pose of `GET /api/v1/robots/{robot_id}/trajectory`: a tracked frame's pose relative to

@@ -47,7 +47,8 @@ pub struct ModelWall {
 pub struct ModelDoorway {
     #[serde(default)]
     pub id: Option<u32>,
-    /// Middle of the opening; z across it, y up.
+    /// The middle of its threshold (the foot of the opening, on the floor); z across the
+    /// opening, y up.
     pub world_from_doorway: Pose,
     #[serde(default)]
     pub markers: Vec<i32>,

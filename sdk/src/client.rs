@@ -3,12 +3,15 @@
 use serde::de::DeserializeOwned;
 use thiserror::Error;
 use vsgraphs_proto::api::{
-    ApiError, FrameDetections, Health, MapView, RobotStatus, TrajectoryPose,
+    ApiError, DictionaryInfo, FrameDetections, Health, MapDoorway, MapSpace, MapSummary, MapView,
+    MapWall, RobotStatus, Route, SceneGraph, TrajectoryPose,
 };
 use vsgraphs_proto::model::BuildingModel;
 
 #[derive(Debug, Error)]
 pub enum ClientError {
+    #[error("{url} is not a URL: {reason}")]
+    BadUrl { url: String, reason: String },
     #[error("HTTP request to {url} failed: {source}")]
     Http { url: String, source: reqwest::Error },
     #[error("{url} answered {status}: {} ({})", .body.message, .body.error)]
@@ -89,13 +92,93 @@ impl Client {
             .await
     }
 
-    async fn get<T: DeserializeOwned>(&self, path: &str) -> Result<T, ClientError> {
+    /// Every map of the server, with the robots that mapped in it.
+    pub async fn server_maps(&self) -> Result<Vec<MapSummary>, ClientError> {
+        self.get("/api/v1/maps").await
+    }
+
+    /// A map's rooms and corridors, by the map's id on the server.
+    pub async fn spaces(&self, map_id: u32) -> Result<Vec<MapSpace>, ClientError> {
+        self.get(&format!("/api/v1/maps/{map_id}/spaces")).await
+    }
+
+    /// One room or corridor, by its id or name.
+    pub async fn space(&self, map_id: u32, space: &str) -> Result<MapSpace, ClientError> {
+        let mut url = self.url(&format!("/api/v1/maps/{map_id}/spaces"))?;
+        if let Ok(mut segments) = url.path_segments_mut() {
+            segments.push(space);
+        }
+        self.get_url(url).await
+    }
+
+    pub async fn doorways(&self, map_id: u32) -> Result<Vec<MapDoorway>, ClientError> {
+        self.get(&format!("/api/v1/maps/{map_id}/doorways")).await
+    }
+
+    pub async fn walls(&self, map_id: u32) -> Result<Vec<MapWall>, ClientError> {
+        self.get(&format!("/api/v1/maps/{map_id}/walls")).await
+    }
+
+    /// The way from one space to another (each by id or name) through doorways.
+    pub async fn route(&self, map_id: u32, from: &str, to: &str) -> Result<Route, ClientError> {
+        let mut url = self.url(&format!("/api/v1/maps/{map_id}/route"))?;
+        url.query_pairs_mut()
+            .append_pair("from", from)
+            .append_pair("to", to);
+        self.get_url(url).await
+    }
+
+    /// The semantic dictionary the server reads markers by.
+    pub async fn dictionary(&self) -> Result<DictionaryInfo, ClientError> {
+        self.get("/api/v1/dictionary").await
+    }
+
+    /// Replaces the server's semantic dictionary with `json` (either reference format); every
+    /// map's rooms, corridors and doorways are rebuilt with it.
+    pub async fn set_dictionary(&self, json: &str) -> Result<DictionaryInfo, ClientError> {
+        let url = self.url("/api/v1/dictionary")?;
+        let request = self
+            .http
+            .put(url.clone())
+            .header("content-type", "application/json")
+            .body(json.to_owned());
+        self.send(url, request).await
+    }
+
+    /// The map's Situational Graph in one document.
+    pub async fn graph(&self, map_id: u32) -> Result<SceneGraph, ClientError> {
+        self.get(&format!("/api/v1/maps/{map_id}/graph")).await
+    }
+
+    /// The server's URL of `path`.
+    fn url(&self, path: &str) -> Result<reqwest::Url, ClientError> {
         let url = format!("{}{path}", self.base);
+        reqwest::Url::parse(&url).map_err(|e| ClientError::BadUrl {
+            url,
+            reason: e.to_string(),
+        })
+    }
+
+    async fn get<T: DeserializeOwned>(&self, path: &str) -> Result<T, ClientError> {
+        self.get_url(self.url(path)?).await
+    }
+
+    async fn get_url<T: DeserializeOwned>(&self, url: reqwest::Url) -> Result<T, ClientError> {
+        let request = self.http.get(url.clone());
+        self.send(url, request).await
+    }
+
+    async fn send<T: DeserializeOwned>(
+        &self,
+        url: reqwest::Url,
+        request: reqwest::RequestBuilder,
+    ) -> Result<T, ClientError> {
+        let url = url.to_string();
         let http = |source| ClientError::Http {
             url: url.clone(),
             source,
         };
-        let response = self.http.get(&url).send().await.map_err(http)?;
+        let response = request.send().await.map_err(http)?;
         let status = response.status();
         let text = response.text().await.map_err(http)?;
         if status.is_success() {

@@ -56,7 +56,8 @@ pub struct Doorway {
     /// The marker that names the door (the one in `between[0]`), and both of its markers.
     pub marker: u32,
     pub markers: Vec<u32>,
-    /// Middle of the opening; z from `between[0]` into `between[1]`, y up.
+    /// The middle of its threshold (the foot of the opening); z from `between[0]` into
+    /// `between[1]`, y up.
     #[serde(serialize_with = "pose_json")]
     pub world_from_doorway: Isometry3<f64>,
 }
@@ -220,7 +221,8 @@ impl Building {
                 ids.push(next_id);
                 next_id += 1;
             }
-            let at = sa.point(door.at[1 - sa.axis], door.height / 2.0);
+            // The middle of the threshold, as the model defines a doorway's place.
+            let at = sa.point(door.at[1 - sa.axis], 0.0);
             doorways.push(Doorway {
                 name: door.name.clone(),
                 between,

@@ -73,7 +73,7 @@ impl Server {
         let ingest = Ingest::start(&session, registry.clone(), config.clone(), maps.clone())
             .await
             .map_err(|e| anyhow::anyhow!("subscribing on zenoh: {e}"))?;
-        let app = api::router(registry.clone()).merge(web::router());
+        let app = api::router(registry.clone(), maps.clone()).merge(web::router());
         let (stop_http, stopped) = oneshot::channel();
         let http = tokio::spawn(async move {
             axum::serve(listener, app)

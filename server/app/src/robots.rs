@@ -8,10 +8,10 @@ use std::collections::{BTreeMap, HashMap, VecDeque};
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex, RwLock};
 use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
-use vsgraphs_pipeline::{FrameTracking, Snapshots};
+use vsgraphs_pipeline::{FrameTracking, Published, Snapshots};
 use vsgraphs_proto::api::{
-    self, FrameCounters, FrameDetections, MapView, Presence, RobotStatus, Timing, TrackingStatus,
-    TrajectoryPose,
+    self, FrameCounters, FrameDetections, MapView, Presence, RobotStatus, SpaceRef, Timing,
+    TrackingStatus, TrajectoryPose,
 };
 use vsgraphs_slam::Anchor;
 
@@ -159,6 +159,8 @@ impl RobotEntry {
             tracking_ms_mean: None,
             mapping_ms_mean: None,
             local_ba_ms_mean: None,
+            map_id: None,
+            space: None,
         });
         status.state = tracking.state;
         status.maps = tracking.maps as u32;
@@ -323,10 +325,30 @@ impl RobotEntry {
                 t.tracking_ms_mean = mean(|r| r.2);
                 t.mapping_ms_mean = mean(|r| r.3);
                 t.local_ba_ms_mean = mean(|r| r.4);
+                if let Some(snapshots) = state.maps.get(&t.map) {
+                    let published = snapshots.published();
+                    t.map_id = Some(published.view.id);
+                    t.space = t
+                        .world_from_camera
+                        .and_then(|pose| space_at(&published, pose.translation_m));
+                }
                 t
             }),
         }
     }
+}
+
+/// The room or corridor of a published map that `position` lies in.
+pub fn space_at(published: &Published, position: [f64; 3]) -> Option<SpaceRef> {
+    let index = published
+        .semantics
+        .space_at(&nalgebra::Vector3::from(position))?;
+    let space = published.view.spaces.get(index)?;
+    Some(SpaceRef {
+        id: space.id,
+        name: space.name.clone(),
+        kind: space.kind,
+    })
 }
 
 /// How long a processed frame took, as a whole and by stage.

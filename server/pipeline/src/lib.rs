@@ -22,6 +22,6 @@ pub mod processor;
 pub mod validate;
 
 pub use config::PipelineConfig;
-pub use maps::{MapService, Snapshots};
+pub use maps::{MapService, Published, Snapshots};
 pub use processor::{FrameProcessor, FrameTracking, Processed};
 pub use validate::{FrameHeader, Reason, Rejection};

@@ -52,13 +52,28 @@ impl Default for Semantics {
     }
 }
 
+/// What a map's writer publishes: the snapshot, and the semantic layer its walls, doorways and
+/// spaces come from (indices in one are ids in the other).
+#[derive(Clone)]
+pub struct Published {
+    pub view: Arc<MapView>,
+    pub semantics: Arc<SemanticMap>,
+}
+
+type Slot = Arc<Mutex<Published>>;
+
 /// A map's snapshot slot, which its writer refills: readers that keep it see the map's newest
 /// snapshot without asking the service.
 #[derive(Clone)]
-pub struct Snapshots(Arc<Mutex<Arc<MapView>>>);
+pub struct Snapshots(Slot);
 
 impl Snapshots {
     pub fn latest(&self) -> Arc<MapView> {
+        lock(&self.0).view.clone()
+    }
+
+    /// The latest snapshot with its semantic layer.
+    pub fn published(&self) -> Published {
         lock(&self.0).clone()
     }
 }
@@ -75,14 +90,22 @@ impl std::fmt::Debug for Snapshots {
 struct MapEntry {
     map: Arc<SharedMap>,
     commands: Mutex<Option<mpsc::Sender<Command>>>,
-    snapshot: Arc<Mutex<Arc<MapView>>>,
+    snapshot: Slot,
     thread: Mutex<Option<JoinHandle<()>>>,
 }
 
-/// A request with where to send its answer.
-struct Command {
-    request: MapRequest,
-    reply: mpsc::SyncSender<Result<MapReply, Failure>>,
+/// What a writer is asked to do.
+// A writer's queue holds a request or two at a time: boxing the large variant would allocate on
+// every request to save bytes on the rare refresh.
+#[allow(clippy::large_enum_variant)]
+enum Command {
+    /// A tracker's request, with where to send its answer.
+    Request {
+        request: MapRequest,
+        reply: mpsc::SyncSender<Result<MapReply, Failure>>,
+    },
+    /// Rebuild the semantic layer: its settings changed.
+    Refresh,
 }
 
 /// Why a request has no reply: an error, or a panic in the writer, handed back to the robot's
@@ -127,9 +150,42 @@ impl MapService {
 
     /// The latest snapshot of a map.
     pub fn snapshot(&self, id: MapId) -> Option<Arc<MapView>> {
-        let entry = lock(&self.inner.maps).get(&id).cloned()?;
-        let snapshot = lock(&entry.snapshot).clone();
-        Some(snapshot)
+        self.snapshots(id).map(|s| s.latest())
+    }
+
+    /// Every map's snapshots, by id.
+    pub fn all(&self) -> Vec<(MapId, Snapshots)> {
+        lock(&self.inner.maps)
+            .iter()
+            .map(|(&id, entry)| (id, Snapshots(entry.snapshot.clone())))
+            .collect()
+    }
+
+    /// Replaces the semantic dictionary (`None`: none) of every map, the ones to come and the
+    /// ones there are: each writer rebuilds its map's layer with it next, robots or not.
+    pub fn set_dictionary(&self, dictionary: Option<Dictionary>) {
+        self.inner
+            .semantics
+            .write()
+            .unwrap_or_else(|p| p.into_inner())
+            .dictionary = dictionary.map(Arc::new);
+        let entries: Vec<_> = lock(&self.inner.maps).values().cloned().collect();
+        for entry in entries {
+            if let Some(commands) = lock(&entry.commands).as_ref() {
+                // A stopped writer has nothing left to publish.
+                let _ = commands.send(Command::Refresh);
+            }
+        }
+    }
+
+    /// The semantic dictionary the maps read now.
+    pub fn dictionary(&self) -> Option<Arc<Dictionary>> {
+        self.inner
+            .semantics
+            .read()
+            .unwrap_or_else(|p| p.into_inner())
+            .dictionary
+            .clone()
     }
 
     /// How many maps the server holds.
@@ -186,13 +242,10 @@ impl MapWriter for MapService {
     ) -> Result<Arc<SharedMap>, TrackError> {
         let id = MapId(self.inner.next_id.fetch_add(1, Ordering::Relaxed));
         let map = Arc::new(SharedMap::new(id));
-        let snapshot = Arc::new(Mutex::new(Arc::new(model::map_view(
-            &Map::default(),
-            label,
-            0,
-            None,
-            None,
-        ))));
+        let snapshot = Arc::new(Mutex::new(Published {
+            view: Arc::new(model::map_view(&Map::default(), id, label, 0, None, None)),
+            semantics: Arc::default(),
+        }));
         let (sender, commands) = mpsc::channel();
         let writer = Writer {
             map: map.clone(),
@@ -224,7 +277,7 @@ impl MapWriter for MapService {
         let (reply, answer) = mpsc::sync_channel(1);
         let sent = lock(&entry.commands)
             .as_ref()
-            .is_some_and(|commands| commands.send(Command { request, reply }).is_ok());
+            .is_some_and(|commands| commands.send(Command::Request { request, reply }).is_ok());
         if !sent {
             return Err(TrackError::Writer("the map's writer has stopped".into()));
         }
@@ -244,7 +297,7 @@ struct Writer {
     map: Arc<SharedMap>,
     mapper: LocalMapper,
     label: usize,
-    snapshot: Arc<Mutex<Arc<MapView>>>,
+    snapshot: Slot,
     semantics: Arc<RwLock<Semantics>>,
 }
 
@@ -252,7 +305,14 @@ impl Writer {
     fn run(mut self, commands: mpsc::Receiver<Command>) {
         let span = tracing::info_span!("map", id = self.map.id().0);
         let _entered = span.enter();
-        for Command { request, reply } in commands {
+        for command in commands {
+            let (request, reply) = match command {
+                Command::Request { request, reply } => (request, reply),
+                Command::Refresh => {
+                    self.guarded("the map's semantic layer", Self::publish_semantics);
+                    continue;
+                }
+            };
             let outcome = catch_unwind(AssertUnwindSafe(|| self.handle(request)));
             let (answer, stamp) = match outcome {
                 Ok(Ok((done, stamp))) => (Ok(done), Some(stamp)),
@@ -304,13 +364,14 @@ impl Writer {
     /// the semantic layer of the snapshot before.
     fn publish_geometry(&mut self, stamp: Option<u64>) {
         let map = self.map.read();
-        let last = lock(&self.snapshot).clone();
+        let last = lock(&self.snapshot).view.clone();
         let updated_ns = stamp.unwrap_or(last.updated_ns);
-        let mut view = model::map_view(&map, self.label, updated_ns, None, None);
+        let mut view = model::map_view(&map, self.map.id(), self.label, updated_ns, None, None);
         view.walls = last.walls.clone();
+        view.doorways = last.doorways.clone();
         view.spaces = last.spaces.clone();
         view.missing_spaces = last.missing_spaces.clone();
-        *lock(&self.snapshot) = Arc::new(view);
+        lock(&self.snapshot).view = Arc::new(view);
     }
 
     /// Rebuilds the map's semantic layer and publishes it in the latest snapshot.
@@ -322,22 +383,33 @@ impl Writer {
             .unwrap_or_else(|p| p.into_inner())
             .clone();
         let dictionary = settings.dictionary.as_deref();
+        let mut read_ms = 0.0;
         let semantic = settings.enabled.then(|| {
             let map = self.map.read();
-            SemanticMap::build(
-                &model::marker_poses(&map),
-                &model::live_points(&map),
-                dictionary,
-            )
+            let (points, cameras) = model::live_points(&map);
+            let input = vsgraphs_semantics::MapInput {
+                markers: &model::marker_poses(&map),
+                points: &points,
+                cameras: &cameras,
+            };
+            read_ms = started.elapsed().as_secs_f64() * 1e3;
+            SemanticMap::build(&input, dictionary)
         });
-        let mut view = (*lock(&self.snapshot).clone()).clone();
+        let built = std::time::Instant::now();
+        let mut view = (*lock(&self.snapshot).view).clone();
         model::set_semantics(&mut view, semantic.as_ref(), dictionary);
         tracing::debug!(
             ms = started.elapsed().as_secs_f64() * 1e3,
+            read_ms,
+            snapshot_ms = built.elapsed().as_secs_f64() * 1e3,
             walls = view.walls.len(),
+            doorways = view.doorways.len(),
             "semantic layer published"
         );
-        *lock(&self.snapshot) = Arc::new(view);
+        *lock(&self.snapshot) = Published {
+            view: Arc::new(view),
+            semantics: Arc::new(semantic.unwrap_or_default()),
+        };
     }
 }
 

@@ -1,14 +1,16 @@
 //! What a robot's maps look like from outside: snapshots of a map for the API and the page
-//! (keyframes, decimated points, marker landmarks, walls, rooms and corridors), and the building
-//! model (the `proto::model` JSON that `vsgraphs-eval semantics` scores). Doorways join it with
-//! the rest of the S-Graph.
+//! (keyframes, decimated points, marker landmarks, walls, doorways, rooms and corridors), and the building
+//! model (the `proto::model` JSON that `vsgraphs-eval semantics` scores).
 
+use nalgebra::Vector3;
 use vsgraphs_proto::api::{
-    self, MapKeyframe, MapMarker, MapSpace, MapView, MapWall, MissingSpace, Pose,
+    self, MapDoorway, MapKeyframe, MapMarker, MapSpace, MapView, MapWall, MissingSpace, Pose,
 };
-use vsgraphs_proto::model::{self, BuildingModel, ModelMarker, ModelPlane, ModelSpace, ModelWall};
+use vsgraphs_proto::model::{
+    self, BuildingModel, ModelDoorway, ModelMarker, ModelPlane, ModelSpace, ModelWall,
+};
 use vsgraphs_semantics::{Dictionary, SemanticMap};
-use vsgraphs_slam::{Map, Se3};
+use vsgraphs_slam::{Map, MapId, Se3};
 
 /// Points a snapshot keeps at most (evenly decimated); the API thins them further on request.
 pub const SNAPSHOT_POINTS: usize = 50_000;
@@ -25,8 +27,10 @@ pub fn api_pose(pose: &Se3) -> Pose {
 
 /// A snapshot of `map` (the robot's map `index`) after the frame stamped `updated_ns`, with its
 /// semantic layer as `dictionary` reads it (none when `semantics` is `None`: the layer is off).
+/// `id` is the map's id on the server.
 pub fn map_view(
     map: &Map,
+    id: MapId,
     index: usize,
     updated_ns: u64,
     semantics: Option<&SemanticMap>,
@@ -40,6 +44,7 @@ pub fn map_view(
         .collect();
     let point_count = live.len() as u64;
     let mut view = MapView {
+        id: id.0,
         map: index as u32,
         updated_ns,
         keyframe_count: map.live_keyframes() as u64,
@@ -64,9 +69,11 @@ pub fn map_view(
                 side_m: m.side_m,
                 world_from_marker: api_pose(&m.world_from_marker),
                 observations: m.observations.len() as u32,
+                keyframes: m.observations.iter().map(|(k, _)| k.0).collect(),
             })
             .collect(),
         walls: Vec::new(),
+        doorways: Vec::new(),
         spaces: Vec::new(),
         missing_spaces: Vec::new(),
     };
@@ -82,16 +89,25 @@ pub fn marker_poses(map: &Map) -> Vec<(i32, Se3)> {
         .collect()
 }
 
-/// The positions of the map's points (not the ones culled as bad).
-pub fn live_points(map: &Map) -> Vec<vsgraphs_semantics::MapPoint> {
-    map.points
+/// The map's points (not the ones culled as bad) with the keyframes that saw them, and the
+/// keyframes' camera centres (indexed by keyframe id), as the semantic layer takes them.
+pub fn live_points(map: &Map) -> (Vec<vsgraphs_semantics::MapPoint>, Vec<Vector3<f64>>) {
+    let cameras = map
+        .keyframes
+        .iter()
+        .map(|k| map.world_from_keyframe(k.id).translation)
+        .collect();
+    let points = map
+        .points
         .iter()
         .filter(|p| !p.bad)
         .map(|p| vsgraphs_semantics::MapPoint {
             position: p.position,
             toward_cameras: p.normal,
+            cameras: p.observations.iter().map(|(k, _)| k.0).collect(),
         })
-        .collect()
+        .collect();
+    (points, cameras)
 }
 
 /// A map's walls, rooms and corridors in its snapshot (none when the layer is off: `None`);
@@ -103,6 +119,7 @@ pub fn set_semantics(
 ) {
     let Some(semantics) = semantics else {
         view.walls.clear();
+        view.doorways.clear();
         view.spaces.clear();
         view.missing_spaces.clear();
         return;
@@ -124,6 +141,28 @@ pub fn set_semantics(
             space: w.space.map(name),
         })
         .collect();
+    view.doorways = semantics
+        .doorways
+        .iter()
+        .enumerate()
+        .map(|(i, d)| MapDoorway {
+            id: i as u32,
+            name: d
+                .door
+                .and_then(|door| dictionary?.doors.get(door))
+                .map(|door| door.name.clone()),
+            world_from_doorway: api_pose(&d.world_from_doorway),
+            width_m: d.width_m,
+            markers: d.markers.clone(),
+            walls: d.walls.iter().map(|&w| w as u32).collect(),
+            between: d.spaces.iter().map(|&s| name(s)).collect(),
+            spaces: semantics
+                .doorway_spaces(i)
+                .into_iter()
+                .map(|s| s as u32)
+                .collect(),
+        })
+        .collect();
     view.spaces = semantics
         .spaces
         .iter()
@@ -137,6 +176,21 @@ pub fn set_semantics(
             },
             centre: s.centre.into(),
             walls: s.walls.iter().map(|&w| w as u32).collect(),
+            doorways: semantics
+                .doorways_of_space(i)
+                .into_iter()
+                .map(|d| d as u32)
+                .collect(),
+            neighbours: {
+                let mut next: Vec<u32> = semantics
+                    .neighbours(i)
+                    .into_iter()
+                    .map(|(s, _)| s as u32)
+                    .collect();
+                next.sort_unstable();
+                next.dedup();
+                next
+            },
         })
         .collect();
     view.missing_spaces = semantics
@@ -193,6 +247,7 @@ pub fn trimmed(view: &MapView, max_points: usize, lists: bool) -> MapView {
         }
     }
     MapView {
+        id: view.id,
         map: view.map,
         updated_ns: view.updated_ns,
         keyframe_count: view.keyframe_count,
@@ -206,12 +261,13 @@ pub fn trimmed(view: &MapView, max_points: usize, lists: bool) -> MapView {
         },
         markers: kept(&view.markers, lists),
         walls: kept(&view.walls, lists),
+        doorways: kept(&view.doorways, lists),
         spaces: kept(&view.spaces, lists),
         missing_spaces: kept(&view.missing_spaces, lists),
     }
 }
 
-/// The building model of a map: its marker landmarks, walls, rooms and corridors.
+/// The building model of a map: its marker landmarks, walls, doorways, rooms and corridors.
 pub fn building_model(view: &MapView) -> BuildingModel {
     BuildingModel {
         markers: view
@@ -237,7 +293,18 @@ pub fn building_model(view: &MapView) -> BuildingModel {
                 markers: w.markers.clone(),
             })
             .collect(),
-        doorways: Vec::new(),
+        doorways: view
+            .doorways
+            .iter()
+            .map(|d| ModelDoorway {
+                id: Some(d.id),
+                world_from_doorway: model::Pose {
+                    translation: d.world_from_doorway.translation_m,
+                    quaternion_xyzw: d.world_from_doorway.rotation_xyzw,
+                },
+                markers: d.markers.clone(),
+            })
+            .collect(),
         spaces: view
             .spaces
             .iter()

@@ -12,11 +12,13 @@ use nalgebra::{Matrix3, SymmetricEigen, Unit, Vector3};
 use vsgraphs_optim::Plane;
 
 /// A map point as the semantic layer takes it.
-#[derive(Clone, Copy, Debug, PartialEq)]
+#[derive(Clone, Debug, PartialEq)]
 pub struct MapPoint {
     pub position: Vector3<f64>,
     /// The mean direction from the point to the cameras that saw it (unit).
     pub toward_cameras: Vector3<f64>,
+    /// The cameras that saw it, as indices into the map's camera centres.
+    pub cameras: Vec<u32>,
 }
 
 /// How points around a marker make its wall's plane.
@@ -224,6 +226,7 @@ mod tests {
                 let seen = |position, toward_cameras| MapPoint {
                     position,
                     toward_cameras,
+                    cameras: Vec::new(),
                 };
                 points.push(seen(Vector3::new(4.0 + wobble, 1.0 + u, 1.2 + v), room));
                 points.push(seen(Vector3::new(3.0 + u * 0.5, 1.0 + v, 0.0), room));
@@ -285,6 +288,7 @@ mod tests {
                 MapPoint {
                     position: centre + Vector3::new(c(), c(), c()),
                     toward_cameras: -Vector3::x(),
+                    cameras: Vec::new(),
                 }
             })
             .collect();

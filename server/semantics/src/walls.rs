@@ -298,6 +298,7 @@ mod tests {
                 points.push(MapPoint {
                     position: Vector3::new(0.0, 0.5 + 0.1 * i as f64, 1.0 + 0.1 * j as f64),
                     toward_cameras: Vector3::x(),
+                    cameras: Vec::new(),
                 });
             }
         }
@@ -337,6 +338,7 @@ mod tests {
                     points.push(MapPoint {
                         position: Vector3::new(0.0, y, 1.5) + offset,
                         toward_cameras: Vector3::x(),
+                        cameras: Vec::new(),
                     });
                 }
             }

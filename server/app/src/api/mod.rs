@@ -1,20 +1,41 @@
-//! REST API under `/api/v1`, with its OpenAPI document at `/api/v1/openapi.json`.
+//! REST API under `/api/v1`, with its OpenAPI document at `/api/v1/openapi.json`: the robots
+//! (here) and the server's maps ([`maps`]).
 //!
-//! Handlers only read the registry's current state; they never wait on processing.
+//! Handlers only read the registry's current state and the maps' latest snapshots; they never
+//! wait on processing.
+
+pub mod dictionary;
+pub mod maps;
 
 use crate::robots::Registry;
-use axum::extract::{Path, Query, State};
+use axum::extract::{FromRef, Path, Query, State};
 use axum::http::StatusCode;
 use axum::response::{IntoResponse, Response};
 use axum::routing::get;
 use axum::{Json, Router};
 use std::sync::Arc;
 use utoipa::OpenApi;
+use vsgraphs_pipeline::MapService;
 use vsgraphs_proto::api::{
-    ApiError, DistanceSource, FrameCounters, FrameDetections, Health, MapKeyframe, MapMarker,
-    MapSpace, MapView, MapWall, MarkerDetection, MarkerPose, MissingSpace, Pose, Presence,
-    Rejection, RobotStatus, SpaceKind, Timing, TrackingState, TrackingStatus, TrajectoryPose,
+    ApiError, DictionaryDoor, DictionaryInfo, DictionarySpace, DistanceSource, FrameCounters,
+    FrameDetections, GraphEdge, GraphLayer, GraphNode, Health, MapDoorway, MapKeyframe, MapMarker,
+    MapSpace, MapSummary, MapView, MapWall, MarkerDetection, MarkerPose, MissingSpace, Pose,
+    Presence, Rejection, RobotStatus, Route, SceneGraph, SpaceKind, SpaceRef, Timing,
+    TrackingState, TrackingStatus, TrajectoryPose,
 };
+
+/// What the handlers read: the robots and the maps.
+#[derive(Clone)]
+pub struct ApiState {
+    pub registry: Arc<Registry>,
+    pub maps: MapService,
+}
+
+impl FromRef<ApiState> for Arc<Registry> {
+    fn from_ref(state: &ApiState) -> Self {
+        state.registry.clone()
+    }
+}
 
 /// An error answer: a status code and a JSON [`ApiError`] body.
 #[derive(Debug)]
@@ -48,7 +69,8 @@ impl IntoResponse for Failure {
 #[openapi(
     info(
         title = "vsgraphs",
-        description = "Robots, their frames and their marker detections."
+        description = "Robots, their frames and tracking; the server's maps with their walls, \
+                       doorways, rooms and corridors."
     ),
     paths(
         health,
@@ -58,7 +80,19 @@ impl IntoResponse for Failure {
         get_trajectory,
         list_maps,
         get_map,
-        get_map_model
+        get_map_model,
+        dictionary::get,
+        dictionary::put,
+        dictionary::delete,
+        maps::list,
+        maps::one,
+        maps::model,
+        maps::spaces,
+        maps::space,
+        maps::doorways,
+        maps::walls,
+        maps::route,
+        maps::graph
     ),
     components(schemas(
         Health,
@@ -80,6 +114,17 @@ impl IntoResponse for Failure {
         MapMarker,
         MapWall,
         MapSpace,
+        MapDoorway,
+        MapSummary,
+        DictionaryInfo,
+        DictionarySpace,
+        DictionaryDoor,
+        SpaceRef,
+        Route,
+        SceneGraph,
+        GraphNode,
+        GraphEdge,
+        GraphLayer,
         SpaceKind,
         MissingSpace,
         ApiError
@@ -95,7 +140,7 @@ pub fn openapi_json() -> String {
 }
 
 /// The `/api/v1` routes.
-pub fn router(registry: Arc<Registry>) -> Router {
+pub fn router(registry: Arc<Registry>, maps: MapService) -> Router {
     Router::new()
         .route("/api/v1/health", get(health))
         .route("/api/v1/robots", get(list_robots))
@@ -109,11 +154,26 @@ pub fn router(registry: Arc<Registry>) -> Router {
             get(get_map_model),
         )
         .route(
+            "/api/v1/dictionary",
+            get(dictionary::get)
+                .put(dictionary::put)
+                .delete(dictionary::delete),
+        )
+        .route("/api/v1/maps", get(maps::list))
+        .route("/api/v1/maps/{map_id}", get(maps::one))
+        .route("/api/v1/maps/{map_id}/model", get(maps::model))
+        .route("/api/v1/maps/{map_id}/spaces", get(maps::spaces))
+        .route("/api/v1/maps/{map_id}/spaces/{space}", get(maps::space))
+        .route("/api/v1/maps/{map_id}/doorways", get(maps::doorways))
+        .route("/api/v1/maps/{map_id}/walls", get(maps::walls))
+        .route("/api/v1/maps/{map_id}/route", get(maps::route))
+        .route("/api/v1/maps/{map_id}/graph", get(maps::graph))
+        .route(
             "/api/v1/openapi.json",
             get(|| async { ([("content-type", "application/json")], openapi_json()) }),
         )
         .route("/api/{*rest}", get(unknown_endpoint))
-        .with_state(registry)
+        .with_state(ApiState { registry, maps })
 }
 
 async fn unknown_endpoint(Path(rest): Path<String>) -> Failure {
@@ -273,7 +333,7 @@ struct MapQuery {
 }
 
 /// Map size of one page of the API: enough for a top view, small enough to poll.
-const DEFAULT_MAP_POINTS: usize = 5_000;
+pub(crate) const DEFAULT_MAP_POINTS: usize = 5_000;
 
 fn find_map(registry: &Registry, robot_id: &str, map: u32) -> Result<Arc<MapView>, Failure> {
     let robot = registry
@@ -365,7 +425,7 @@ mod tests {
     async fn unknown_things_are_json_404s() {
         let registry = Arc::new(Registry::new(4, 4, true));
         registry.get_or_insert("known").unwrap();
-        let app = router(registry);
+        let app = router(registry, MapService::new());
         let (status, body) = get_json(app.clone(), "/api/v1/robots/ghost").await;
         assert_eq!(
             (status, body["error"].as_str()),
@@ -381,16 +441,86 @@ mod tests {
             (status, body["error"].as_str()),
             (StatusCode::NOT_FOUND, Some("no_such_endpoint"))
         );
+        let (status, body) = get_json(app.clone(), "/api/v1/maps/7/spaces").await;
+        assert_eq!(
+            (status, body["error"].as_str()),
+            (StatusCode::NOT_FOUND, Some("map_not_found"))
+        );
+        let (status, body) = get_json(app.clone(), "/api/v1/maps").await;
+        assert_eq!((status, body), (StatusCode::OK, serde_json::json!([])));
         let (status, body) = get_json(app, "/api/v1/robots").await;
         assert_eq!(status, StatusCode::OK);
         assert_eq!(body[0]["robot_id"], "known");
         assert_eq!(body[0]["presence"], "unknown");
     }
 
+    async fn send(app: Router, method: &str, uri: &str, body: &str) -> (StatusCode, String) {
+        let request = Request::builder()
+            .method(method)
+            .uri(uri)
+            .body(Body::from(body.to_owned()))
+            .unwrap();
+        let response = app.oneshot(request).await.unwrap();
+        let status = response.status();
+        let bytes = axum::body::to_bytes(response.into_body(), 1 << 20)
+            .await
+            .unwrap();
+        (status, String::from_utf8(bytes.to_vec()).unwrap())
+    }
+
+    #[tokio::test]
+    async fn the_dictionary_is_replaced_checked_and_removed_at_run_time() {
+        let maps = MapService::new();
+        let app = router(Arc::new(Registry::new(4, 4, true)), maps.clone());
+        let (status, body) = get_json(app.clone(), "/api/v1/dictionary").await;
+        assert_eq!(
+            (status, body["error"].as_str()),
+            (StatusCode::NOT_FOUND, Some("no_dictionary"))
+        );
+        // A broken one is refused with what is wrong, and the maps keep what they had.
+        let (status, body) = send(
+            app.clone(),
+            "PUT",
+            "/api/v1/dictionary",
+            r#"{"rooms": [{"name": "Hall", "markers": [[1, 2, 3]], "doorMarkers": []}]}"#,
+        )
+        .await;
+        assert_eq!(status, StatusCode::BAD_REQUEST, "{body}");
+        assert!(
+            body.contains("bad_dictionary") && body.contains("Hall"),
+            "{body}"
+        );
+        assert!(maps.dictionary().is_none());
+        let (status, body) = send(
+            app.clone(),
+            "PUT",
+            "/api/v1/dictionary",
+            r#"{"rooms": [{"name": "Hall", "markers": [[1, 2, 3, 4]], "doorMarkers": [9]}],
+                "doors": [{"name": "Front", "marker": 9}, {"name": "Back", "marker": 9}]}"#,
+        )
+        .await;
+        assert_eq!(status, StatusCode::OK, "{body}");
+        let shown: DictionaryInfo = serde_json::from_str(&body).unwrap();
+        assert_eq!(shown.version, 1);
+        assert_eq!(shown.spaces[0].name, "Hall");
+        assert_eq!(shown.spaces[0].wall_groups, vec![vec![1, 2, 3, 4]]);
+        assert_eq!(shown.warnings.len(), 1, "marker 9 names two doors");
+        assert_eq!(maps.dictionary().unwrap().spaces[0].name, "Hall");
+        let (status, body) = get_json(app.clone(), "/api/v1/dictionary").await;
+        assert_eq!(
+            (status, &body["doors"][0]["name"]),
+            (StatusCode::OK, &serde_json::json!("Front"))
+        );
+        let (status, _) = send(app.clone(), "DELETE", "/api/v1/dictionary", "").await;
+        assert_eq!(status, StatusCode::NO_CONTENT);
+        assert!(maps.dictionary().is_none());
+    }
+
     #[tokio::test]
     async fn openapi_lists_every_route() {
         let registry = Arc::new(Registry::new(4, 4, true));
-        let (status, doc) = get_json(router(registry), "/api/v1/openapi.json").await;
+        let (status, doc) =
+            get_json(router(registry, MapService::new()), "/api/v1/openapi.json").await;
         assert_eq!(status, StatusCode::OK);
         let paths = doc["paths"].as_object().unwrap();
         for path in [
@@ -398,6 +528,11 @@ mod tests {
             "/api/v1/robots",
             "/api/v1/robots/{robot_id}",
             "/api/v1/robots/{robot_id}/detections",
+            "/api/v1/maps",
+            "/api/v1/maps/{map_id}/spaces/{space}",
+            "/api/v1/maps/{map_id}/route",
+            "/api/v1/maps/{map_id}/graph",
+            "/api/v1/dictionary",
         ] {
             assert!(
                 paths.contains_key(path),

@@ -1,0 +1,197 @@
+//! A virtual robot walks seq01 (two rooms joined by a door) and streams it live over real zenoh
+//! to the real server, with the building's semantic dictionary. The HTTP API then lists the
+//! map with its robot, the two rooms as neighbours, the doorway between them, the route from one
+//! to the other, the map's Situational Graph, and the room the robot is in at the end of its walk;
+//! a dictionary replaced through the API renames the rooms without restarting the robot.
+
+use std::collections::BTreeSet;
+use std::sync::Arc;
+use std::time::Duration;
+use vsgraphs_proto::api::{GraphLayer, SpaceKind};
+use vsgraphs_sdk::player::Rate;
+use vsgraphs_sdk::simulated::{self, SimOptions};
+use vsgraphs_sdk::{ClientError, Delivery, Robot, RobotConfig};
+use vsgraphs_sim::scenarios::Scenario;
+use vsgraphs_sim::{Building, Renderer};
+use vsgraphs_tests::*;
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_api_answers_rooms_doorways_route_and_where_the_robot_is_after_seq01() {
+    let scenario = Scenario::builtin("seq01").unwrap();
+    let building = Building::from_plan(&scenario.plan).unwrap();
+    let dictionary = tempfile::NamedTempFile::new().unwrap();
+    std::fs::write(dictionary.path(), building.dictionary_v1().to_string()).unwrap();
+    let test = TestServer::start_with(|c| {
+        c.semantics.dictionary_file = dictionary.path().to_path_buf();
+    })
+    .await;
+    let renderer = Arc::new(Renderer::new(
+        &scenario.plan,
+        &building,
+        scenario.render.clone(),
+        1,
+    ));
+    let walk = Arc::new(scenario.walks().unwrap().remove(0));
+    let frames = walk.times.len();
+
+    let mut config = RobotConfig::connecting_to("sim-1", &test.zenoh_endpoint);
+    config.delivery = Delivery::Reliable;
+    let robot = Robot::connect(config).await.unwrap();
+    let options = SimOptions {
+        // Half the walk's pace: what the server keeps up with in this build.
+        rate: Rate::Hz(15.0),
+        ..SimOptions::default()
+    };
+    let summary = simulated::stream(&robot, renderer.clone(), walk.clone(), &options, |_, _| {})
+        .await
+        .unwrap();
+    assert_eq!(summary.frames_sent, frames as u64);
+    let status = wait_for(
+        "every frame processed",
+        Duration::from_secs(120),
+        || async {
+            let status = test.client.robot("sim-1").await.ok()?;
+            let f = &status.frames;
+            (f.processed + f.dropped + f.rejected >= frames as u64).then_some(status)
+        },
+    )
+    .await;
+    let tracking = status.tracking.clone().expect("tracking is on by default");
+    assert!(
+        tracking.frames_tracked as f64 >= 0.95 * frames as f64,
+        "{tracking:?}"
+    );
+
+    // One map on the server, mapped by this robot; its semantic layer lands a little after the
+    // last keyframe: wait for both rooms and the doorway.
+    let maps = test.client.server_maps().await.unwrap();
+    assert_eq!(maps.len(), 1, "{maps:?}");
+    assert_eq!(maps[0].robots, vec!["sim-1".to_string()]);
+    let map_id = maps[0].id;
+    assert_eq!(tracking.map_id, Some(map_id));
+    let spaces = wait_for(
+        "both rooms and the doorway",
+        Duration::from_secs(30),
+        || async {
+            let spaces = test.client.spaces(map_id).await.ok()?;
+            let doorways = test.client.doorways(map_id).await.ok()?;
+            (spaces.len() == 2 && doorways.len() == 1).then_some(spaces)
+        },
+    )
+    .await;
+    let names: BTreeSet<&str> = spaces.iter().map(|s| s.name.as_str()).collect();
+    let truth: BTreeSet<&str> = building.spaces.iter().map(|s| s.name.as_str()).collect();
+    assert_eq!(names, truth);
+    assert!(spaces
+        .iter()
+        .all(|s| s.kind == SpaceKind::Room && s.walls.len() == 4));
+    let (a, b) = (&spaces[0], &spaces[1]);
+    assert_eq!(
+        (a.neighbours.clone(), b.neighbours.clone()),
+        (vec![b.id], vec![a.id])
+    );
+
+    // The doorway joins them, named as the dictionary names the door, and sits where the door
+    // is: its distances to the two rooms' centres are the building's (the map has its own frame).
+    let doorways = test.client.doorways(map_id).await.unwrap();
+    let doorway = &doorways[0];
+    let door = &building.doorways[0];
+    assert_eq!(doorway.name.as_deref(), Some(door.name.as_str()));
+    let between: BTreeSet<&str> = doorway.between.iter().map(|s| s.as_str()).collect();
+    assert_eq!(between, truth);
+    assert_eq!(a.doorways, vec![doorway.id]);
+    let at = nalgebra::Vector3::from(doorway.world_from_doorway.translation_m);
+    let true_at = door.world_from_doorway.translation.vector;
+    for space in &spaces {
+        let true_space = building
+            .spaces
+            .iter()
+            .find(|s| s.name == space.name)
+            .unwrap();
+        let mapped = (at - nalgebra::Vector3::from(space.centre)).norm();
+        let actual = (true_at - nalgebra::Vector3::from(true_space.centre)).norm();
+        assert!(
+            (mapped - actual).abs() < 0.1,
+            "{}: {mapped} m from the doorway, {actual} m in the building",
+            space.name
+        );
+    }
+    assert!((doorway.width_m - 0.9).abs() < 0.15, "{doorway:?}");
+
+    // The route from one room to the other goes through that doorway; by name or by id.
+    let route = test.client.route(map_id, &a.name, &b.name).await.unwrap();
+    let passed: Vec<&str> = route.spaces.iter().map(|s| s.name.as_str()).collect();
+    assert_eq!(passed, vec![a.name.as_str(), b.name.as_str()]);
+    assert_eq!(route.doorways, vec![doorway.id]);
+    assert!(route.length_m > 1.0 && route.length_m < 20.0, "{route:?}");
+    let by_id = test
+        .client
+        .route(map_id, &b.id.to_string(), &a.id.to_string())
+        .await
+        .unwrap();
+    assert_eq!(by_id.doorways, vec![doorway.id]);
+    match test.client.route(map_id, &a.name, "Nowhere").await {
+        Err(ClientError::Api { status, body, .. }) => {
+            assert_eq!((status, body.error.as_str()), (404, "space_not_found"));
+            assert!(body.message.contains("Nowhere"), "{}", body.message);
+        }
+        other => panic!("a route to an unknown room: {other:?}"),
+    }
+    let one = test.client.space(map_id, &a.name).await.unwrap();
+    assert_eq!(one, *a);
+
+    // The room the robot ends its walk in, as the building has it.
+    let end = walk.world_from_camera.last().unwrap().translation.vector;
+    let ends_in = scenario
+        .plan
+        .spaces
+        .iter()
+        .find(|s| (0..2).all(|i| s.min[i] < end[i] && end[i] < s.max[i]))
+        .unwrap();
+    let status = test.client.robot("sim-1").await.unwrap();
+    let space = status.tracking.and_then(|t| t.space);
+    assert_eq!(
+        space.as_ref().map(|s| s.name.as_str()),
+        Some(ends_in.name.as_str())
+    );
+
+    // The Situational Graph: three layers, markers on walls and walls of rooms.
+    let graph = test.client.graph(map_id).await.unwrap();
+    for layer in [
+        GraphLayer::Keyframes,
+        GraphLayer::Structure,
+        GraphLayer::Spaces,
+    ] {
+        assert!(graph.nodes.iter().any(|n| n.layer == layer), "{layer:?}");
+    }
+    let ids: BTreeSet<&str> = graph.nodes.iter().map(|n| n.id.as_str()).collect();
+    assert!(graph
+        .edges
+        .iter()
+        .all(|e| ids.contains(e.from.as_str()) && ids.contains(e.to.as_str())));
+    for s in &spaces {
+        let node = format!("room/{}", s.id);
+        let walls = graph
+            .edges
+            .iter()
+            .filter(|e| e.to == node && e.from.starts_with("wall/"));
+        assert_eq!(walls.count(), 4, "{node}");
+    }
+
+    // A dictionary replaced at run time renames the rooms without a frame more.
+    let mut renamed = building.dictionary_v1();
+    renamed["rooms"][0]["name"] = "Kitchen".into();
+    test.client
+        .set_dictionary(&renamed.to_string())
+        .await
+        .unwrap();
+    let kitchen = building.spaces[0].name.clone();
+    let spaces = wait_for("the rooms renamed", Duration::from_secs(10), || async {
+        let spaces = test.client.spaces(map_id).await.ok()?;
+        spaces.iter().any(|s| s.name == "Kitchen").then_some(spaces)
+    })
+    .await;
+    assert!(spaces.iter().all(|s| s.name != kitchen), "{spaces:?}");
+    assert_eq!(spaces.len(), 2);
+    robot.close().await.unwrap();
+}
