@@ -157,8 +157,9 @@ enum Command {
         /// Renderer noise seed.
         #[arg(long, default_value_t = 1)]
         seed: u64,
-        /// A server configuration file (TOML), of which its [markers] and [tracking] sections
-        /// are read; default: the built-in defaults.
+        /// A server configuration file (TOML), of which its [markers], [tracking] and
+        /// [semantics] sections are read (`[semantics] enabled = false` measures the trajectory
+        /// without the S-Graph); default: the built-in defaults.
         #[arg(long)]
         config: Option<PathBuf>,
         /// Also write the estimated trajectory (TUM: estimate.txt refined, estimate_as_tracked.txt

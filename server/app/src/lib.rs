@@ -48,7 +48,8 @@ impl Server {
         for warning in dictionary.iter().flat_map(|d| &d.warnings) {
             tracing::warn!(warning, "semantic dictionary");
         }
-        let maps = MapService::with_semantics(config.semantics.enabled, dictionary);
+        let maps = MapService::with_semantics(config.semantics.enabled, dictionary)
+            .with_whole_map_optimisation(config.semantics.optimise_every_keyframes);
         vsgraphs_pipeline::FrameProcessor::new(
             &config.markers,
             &config.tracking,

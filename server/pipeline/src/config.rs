@@ -33,13 +33,21 @@ pub struct SemanticsConfig {
     /// The semantic dictionary (the reference's JSON, version 1 or 2); empty for none (then
     /// every marker is a wall marker and there are walls only).
     pub dictionary_file: PathBuf,
+    /// Keyframes between optimisations of each map's whole S-Graph (0: none).
+    pub optimise_every_keyframes: usize,
 }
+
+/// Keyframes between whole-map optimisations: a robot maps a keyframe every few tenths of a
+/// second, so the map is corrected every few seconds, while each optimisation stays a small
+/// share of the map's writer (it grows with the map: see BENCHMARKS.md).
+pub const DEFAULT_OPTIMISE_EVERY_KEYFRAMES: usize = 20;
 
 impl Default for SemanticsConfig {
     fn default() -> Self {
         Self {
             enabled: true,
             dictionary_file: PathBuf::new(),
+            optimise_every_keyframes: DEFAULT_OPTIMISE_EVERY_KEYFRAMES,
         }
     }
 }

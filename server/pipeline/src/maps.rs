@@ -19,6 +19,7 @@ use std::sync::{mpsc, Arc, Mutex, MutexGuard, RwLock};
 use std::thread::JoinHandle;
 use vsgraphs_proto::api::MapView;
 use vsgraphs_semantics::{Dictionary, SemanticMap};
+use vsgraphs_slam::walls::WallPrior;
 use vsgraphs_slam::{
     LocalMapper, Map, MapId, MapReply, MapRequest, MapWriter, MappingConfig, SharedMap, TrackError,
 };
@@ -41,6 +42,8 @@ struct Inner {
 struct Semantics {
     enabled: bool,
     dictionary: Option<Arc<Dictionary>>,
+    /// Keyframes between whole-map optimisations of the S-Graph (0: none).
+    optimise_every: usize,
 }
 
 impl Default for Semantics {
@@ -48,6 +51,7 @@ impl Default for Semantics {
         Self {
             enabled: true,
             dictionary: None,
+            optimise_every: crate::config::DEFAULT_OPTIMISE_EVERY_KEYFRAMES,
         }
     }
 }
@@ -138,8 +142,20 @@ impl MapService {
             .unwrap_or_else(|p| p.into_inner()) = Semantics {
             enabled,
             dictionary: dictionary.map(Arc::new),
+            ..Semantics::default()
         };
         service
+    }
+
+    /// Optimises each map's whole S-Graph every `every` keyframes (0: never), when the semantic
+    /// layer is enabled.
+    pub fn with_whole_map_optimisation(self, every: usize) -> Self {
+        self.inner
+            .semantics
+            .write()
+            .unwrap_or_else(|p| p.into_inner())
+            .optimise_every = every;
+        self
     }
 
     /// Where a map's snapshots appear: [`Snapshots::latest`] is always its newest.
@@ -349,6 +365,14 @@ impl Writer {
             MapRequest::Insert(insert) => Some(insert.frame.timestamp_ns),
             MapRequest::Flush(_) => None,
         };
+        let settings = self.semantics.read().unwrap_or_else(|p| p.into_inner());
+        let every = if settings.enabled {
+            settings.optimise_every
+        } else {
+            0
+        };
+        drop(settings);
+        self.mapper.set_whole_map_every(every);
         let reply = self.mapper.handle(&mut self.map.write(), request)?;
         Ok((reply, stamp))
     }
@@ -395,6 +419,17 @@ impl Writer {
             read_ms = started.elapsed().as_secs_f64() * 1e3;
             SemanticMap::build(&input, dictionary)
         });
+        // Local BA adjusts the walls with their markers and points from the next keyframe on.
+        self.mapper
+            .set_walls(semantic.as_ref().map_or_else(Vec::new, |s| {
+                s.walls
+                    .iter()
+                    .map(|w| WallPrior {
+                        plane: w.plane,
+                        markers: w.markers.clone(),
+                    })
+                    .collect()
+            }));
         let built = std::time::Instant::now();
         let mut view = (*lock(&self.snapshot).view).clone();
         model::set_semantics(&mut view, semantic.as_ref(), dictionary);

@@ -161,7 +161,8 @@ pub fn run_frames(
         &config.markers,
         &config.tracking,
         DEFAULT_MAX_FRAME_BYTES,
-        MapService::with_semantics(config.semantics.enabled, source.dictionary.cloned()),
+        MapService::with_semantics(config.semantics.enabled, source.dictionary.cloned())
+            .with_whole_map_optimisation(config.semantics.optimise_every_keyframes),
     )?;
     let started = Instant::now();
     let total = source.total;

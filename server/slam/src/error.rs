@@ -10,6 +10,8 @@ pub enum TrackError {
     Features(#[from] CvError),
     #[error("local bundle adjustment failed: {0}")]
     LocalBa(#[from] vsgraphs_optim::SolveError),
+    #[error("whole-map optimisation failed: {0}")]
+    WholeMap(vsgraphs_optim::SolveError),
     #[error("the local bundle adjustment thread stopped")]
     BaThreadStopped,
     #[error("map {0:?} has no writer")]

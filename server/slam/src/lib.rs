@@ -15,6 +15,7 @@
 pub mod atlas;
 pub mod error;
 pub mod frame;
+pub mod global;
 pub mod local_mapping;
 pub mod map;
 pub mod mapping;
@@ -23,6 +24,7 @@ pub mod matcher;
 pub mod sighting;
 pub mod tracking;
 pub mod triangulation;
+pub mod walls;
 
 pub use atlas::{MapWriter, SharedMap};
 pub use error::TrackError;

@@ -10,13 +10,20 @@
 
 use crate::error::TrackError;
 use crate::frame::{Frame, Rig};
+use crate::global;
 use crate::map::{KeyFrameId, Map, MapPointId};
 use crate::mapping::{self, LocalBaJob, SolvedLocalBa};
 use crate::markers;
 use crate::triangulation;
+use crate::walls::WallPrior;
+use std::collections::HashSet;
 use std::sync::mpsc;
 use std::time::Duration;
 use vsgraphs_optim::Se3;
+
+/// Levenberg–Marquardt iterations of a whole-map optimisation: it starts from the map as local
+/// BA left it, a few centimetres from its optimum at most.
+const WHOLE_MAP_ITERATIONS: usize = 20;
 
 /// How a map is mapped (see `TrackerConfig` for each field's default and reason).
 #[derive(Clone, Debug, PartialEq)]
@@ -136,6 +143,12 @@ pub struct LocalMapper {
     /// A bundle adjustment being solved in the background: its keyframe and the rig it was
     /// built with.
     pending_ba: Option<(KeyFrameId, Rig)>,
+    /// The map's walls as its semantic layer last gave them, for local BA.
+    walls: Vec<WallPrior>,
+    /// Keyframes between whole-map optimisations (0: none), and keyframes inserted since the
+    /// last one.
+    whole_map_every: usize,
+    since_whole_map: usize,
 }
 
 impl LocalMapper {
@@ -145,7 +158,54 @@ impl LocalMapper {
             recent_points: Vec::new(),
             ba_worker: None,
             pending_ba: None,
+            walls: Vec::new(),
+            whole_map_every: 0,
+            since_whole_map: 0,
         }
+    }
+
+    /// The map's walls for the bundle adjustments to come (its semantic layer builds them
+    /// between keyframes; none: no wall terms).
+    pub fn set_walls(&mut self, walls: Vec<WallPrior>) {
+        self.walls = walls;
+    }
+
+    /// Optimises the whole map's S-Graph ([`global::optimise_map`]) every `every` keyframes
+    /// (0: never), before the keyframe that completes the count is inserted.
+    pub fn set_whole_map_every(&mut self, every: usize) {
+        self.whole_map_every = every;
+    }
+
+    /// The whole-map optimisation, when its turn has come: before a keyframe is inserted (the
+    /// last BA has landed), so that the tracker that waits for the keyframe sees the map after
+    /// it and the result never depends on timing. The newest keyframe and its local window hold
+    /// still: the frame being inserted was tracked against them.
+    fn optimise_whole_map(&mut self, map: &mut Map, rig: &Rig) -> Result<(), TrackError> {
+        if self.whole_map_every == 0 || self.since_whole_map < self.whole_map_every {
+            return Ok(());
+        }
+        self.since_whole_map = 0;
+        let Some(newest) = map
+            .keyframes
+            .iter()
+            .rev()
+            .find(|k| !k.is_culled())
+            .map(|k| k.id)
+        else {
+            return Ok(());
+        };
+        let started = std::time::Instant::now();
+        let hold: HashSet<KeyFrameId> = std::iter::once(newest)
+            .chain(mapping::local_window(map, newest))
+            .collect();
+        let report = global::optimise_map(map, rig, &self.walls, &hold, WHOLE_MAP_ITERATIONS)
+            .map_err(TrackError::WholeMap)?;
+        tracing::debug!(
+            ms = started.elapsed().as_secs_f64() * 1e3,
+            ?report,
+            "whole map optimised"
+        );
+        Ok(())
     }
 
     pub fn config(&self) -> &MappingConfig {
@@ -200,6 +260,8 @@ impl LocalMapper {
             Some(correction) => correction.compose(&world_from_camera),
             None => world_from_camera,
         };
+        self.since_whole_map += 1;
+        self.optimise_whole_map(map, &rig)?;
         // The previous keyframe's BA has landed: its neighbours' redundancy is as settled as it
         // gets (ORB-SLAM culls right after local BA; here that is the same point in both BA
         // modes). The newest keyframe and the reference stay.
@@ -225,8 +287,14 @@ impl LocalMapper {
         mapping::cull_recent_points(map, &mut self.recent_points, k);
         map.refresh_neighbours(k);
         if self.config.local_ba_iterations > 0 {
-            let job = mapping::prepare_local_ba(map, &rig, k, self.config.local_ba_iterations)
-                .with_threads(self.config.local_ba_threads);
+            let job = mapping::prepare_local_ba(
+                map,
+                &rig,
+                k,
+                self.config.local_ba_iterations,
+                &self.walls,
+            )
+            .with_threads(self.config.local_ba_threads);
             local_ba += self.start_local_ba(map, job, k, rig)?;
         }
         let keyframe = map.keyframe(k);

@@ -9,12 +9,14 @@
 use crate::frame::{Frame, Rig};
 use crate::map::{KeyFrameId, Map, MapPointId};
 use crate::markers::CORNER_INFORMATION;
+use crate::sighting::MarkerSighting;
+use crate::walls::{self, MarkerVar, PointVar, WallPrior, WallReport, WallTerms};
 use nalgebra::{Vector2, Vector3};
 use std::collections::{HashMap, HashSet};
 use vsgraphs_optim::factors::marker::MarkerCornersFactor;
 use vsgraphs_optim::factors::projection::{ProjectionFactor, StereoProjectionFactor};
 use vsgraphs_optim::pose_only::{chi2, Measurement, PoseObservation, CHI2_2D, CHI2_3D};
-use vsgraphs_optim::{Information, Kernel, Key, Options, Problem, Se3, Solver, Values};
+use vsgraphs_optim::{Factor, Information, Kernel, Key, Options, Problem, Se3, Solver, Values};
 
 /// Fewest new points a keyframe creates from depth, nearest first, even beyond `close_depth`.
 pub const MIN_NEW_POINTS: usize = 100;
@@ -22,6 +24,8 @@ pub const MIN_NEW_POINTS: usize = 100;
 pub const LOCAL_WINDOW: usize = 20;
 /// χ² at 95 % for 8 degrees of freedom (a marker's four corners).
 const CHI2_8D: f64 = 15.507;
+/// χ² at 95 % for 12 degrees of freedom (four corners with their depths).
+const CHI2_12D: f64 = 21.026;
 /// Shared points for a keyframe to join the local window.
 const MIN_SHARED: usize = 15;
 /// A local BA has converged once an accepted step lowers its cost by less than this fraction
@@ -310,6 +314,8 @@ pub struct LocalBaReport {
     pub observations: usize,
     /// Markers adjusted with them.
     pub markers: usize,
+    /// The walls adjusted with them.
+    pub walls: WallReport,
     /// Observations dropped as outliers afterwards.
     pub outliers: usize,
     pub initial_cost: f64,
@@ -347,7 +353,7 @@ pub fn local_bundle_adjustment(
     keyframe: KeyFrameId,
     iterations: usize,
 ) -> Result<LocalBaReport, vsgraphs_optim::SolveError> {
-    let solved = prepare_local_ba(map, rig, keyframe, iterations).solve();
+    let solved = prepare_local_ba(map, rig, keyframe, iterations, &[]).solve();
     apply_local_ba(map, rig, solved)
 }
 
@@ -370,6 +376,7 @@ struct BaParts {
     marker_keys: Vec<(i32, Key<Se3>)>,
     observed: Vec<(MapPointId, KeyFrameId, usize)>,
     fixed_keyframes: usize,
+    walls: WallReport,
 }
 
 /// A solved (or failed) local BA, to apply to the map it was built from.
@@ -414,21 +421,49 @@ impl LocalBaJob {
     }
 }
 
-/// Builds the local BA of `keyframe` (see [`local_bundle_adjustment`]).
+/// A keyframe's sighting of a marker as a corner factor, with the corners' depths when the
+/// sighting has them.
+pub(crate) fn sighting_factor(
+    rig: &Rig,
+    world_from_camera: Key<Se3>,
+    world_from_marker: Key<Se3>,
+    side_m: f64,
+    sighting: &MarkerSighting,
+) -> MarkerCornersFactor {
+    let factor = MarkerCornersFactor::new(
+        world_from_camera,
+        world_from_marker,
+        rig.camera,
+        side_m,
+        sighting.corners,
+    );
+    match sighting.corner_depths {
+        Some(depths) => factor.with_depths(rig.stereo(), depths),
+        None => factor,
+    }
+}
+
+/// The keyframes local BA adjusts with `keyframe`: its most covisible ones.
+pub fn local_window(map: &Map, keyframe: KeyFrameId) -> Vec<KeyFrameId> {
+    map.covisible(keyframe)
+        .into_iter()
+        .filter(|&(_, shared)| shared >= MIN_SHARED)
+        .take(LOCAL_WINDOW - 1)
+        .map(|(k, _)| k)
+        .collect()
+}
+
+/// Builds the local BA of `keyframe` (see [`local_bundle_adjustment`]), with the `walls` that
+/// its markers hang on ([`walls::add_wall_terms`]).
 pub fn prepare_local_ba(
     map: &Map,
     rig: &Rig,
     keyframe: KeyFrameId,
     iterations: usize,
+    walls: &[WallPrior],
 ) -> LocalBaJob {
     let mut window: Vec<KeyFrameId> = vec![keyframe];
-    window.extend(
-        map.covisible(keyframe)
-            .into_iter()
-            .filter(|&(_, shared)| shared >= MIN_SHARED)
-            .take(LOCAL_WINDOW - 1)
-            .map(|(k, _)| k),
-    );
+    window.extend(local_window(map, keyframe));
     let in_window: HashSet<KeyFrameId> = window.iter().copied().collect();
     let mut points: Vec<MapPointId> = Vec::new();
     let mut seen = HashSet::new();
@@ -492,13 +527,13 @@ pub fn prepare_local_ba(
         let marker_key = values.add(marker.world_from_marker);
         marker_keys.push((marker.id, marker_key));
         for (pose_key, k, index) in sightings {
-            let corners = map.keyframe(k).frame.markers[index].corners;
-            marker_factors.push(MarkerCornersFactor::new(
+            let sighting = &map.keyframe(k).frame.markers[index];
+            marker_factors.push(sighting_factor(
+                rig,
                 pose_key,
                 marker_key,
-                rig.camera,
                 marker.side_m,
-                corners,
+                sighting,
             ));
         }
     }
@@ -536,19 +571,52 @@ pub fn prepare_local_ba(
     }
     let corner_sigma = 1.0 / CORNER_INFORMATION.sqrt();
     for factor in marker_factors {
+        let (dim, limit) = match factor.residual_dim() {
+            8 => (8, CHI2_8D),
+            _ => (12, CHI2_12D),
+        };
         problem
             .add(
                 factor,
-                Information::isotropic(8, corner_sigma).expect("positive sigma"),
-                Some(Kernel::Huber(CHI2_8D.sqrt())),
+                Information::isotropic(dim, corner_sigma).expect("positive sigma"),
+                Some(Kernel::Huber(limit.sqrt())),
             )
             .expect("keys made above");
     }
+    let wall_report = if walls.is_empty() {
+        WallReport::default()
+    } else {
+        let marker_vars: Vec<MarkerVar> = marker_keys
+            .iter()
+            .map(|&(id, key)| MarkerVar {
+                id,
+                key,
+                world_from_marker: map.markers[&id].world_from_marker,
+            })
+            .collect();
+        let point_vars: Vec<PointVar> = points
+            .iter()
+            .zip(&point_keys)
+            .map(|(&p, &key)| PointVar {
+                key,
+                position: map.point(p).position,
+                toward_cameras: map.point(p).normal,
+            })
+            .collect();
+        walls::add_wall_terms(
+            &mut problem,
+            walls,
+            &marker_vars,
+            &point_vars,
+            &WallTerms::default(),
+        )
+    };
     LocalBaJob {
         problem,
         iterations,
         threads: 1,
         parts: BaParts {
+            walls: wall_report,
             window,
             pose_keys,
             points,
@@ -577,6 +645,7 @@ pub fn apply_local_ba(
         marker_keys,
         observed,
         fixed_keyframes,
+        walls,
     } = solved.parts;
     for &k in &window {
         if let Some(key) = pose_keys.get(&k) {
@@ -647,6 +716,7 @@ pub fn apply_local_ba(
         points: points.len(),
         observations: observed.len(),
         markers: marker_keys.len(),
+        walls,
         outliers,
         initial_cost: report.initial_cost,
         final_cost: report.final_cost,

@@ -8,6 +8,7 @@
 use crate::frame::Rig;
 use crate::map::{KeyFrameId, Map, MapMarker};
 use crate::sighting::MarkerSighting;
+use nalgebra::Vector3;
 use vsgraphs_optim::pose_only::{chi2, Measurement, PoseObservation};
 use vsgraphs_optim::Se3;
 
@@ -58,22 +59,35 @@ pub fn corner_observations(
         if marker.side_m != sighting.side_m {
             continue;
         }
-        let corners = corner_observations_of(marker, sighting);
+        let corners = corner_observations_of(marker, sighting, None);
         if !explains(rig, world_from_camera, &corners, sighting.id) {
             continue;
         }
-        observations.extend(corners);
+        observations.extend(corner_observations_of(marker, sighting, Some(rig)));
     }
     observations
 }
 
-/// The four corners of `sighting` as observations of `marker`'s mapped corners.
-fn corner_observations_of(marker: &MapMarker, sighting: &MarkerSighting) -> [PoseObservation; 4] {
+/// The four corners of `sighting` as observations of `marker`'s mapped corners: in pixels
+/// alone, or with the sighting's corner depths (as virtual right-image coordinates of `rig`)
+/// when `rig` is given and the sighting has them.
+fn corner_observations_of(
+    marker: &MapMarker,
+    sighting: &MarkerSighting,
+    rig: Option<&Rig>,
+) -> [PoseObservation; 4] {
     let in_world = marker.corners_in_world();
-    std::array::from_fn(|i| PoseObservation {
-        point_in_world: in_world[i],
-        measured: Measurement::Mono(sighting.corners[i]),
-        information: CORNER_INFORMATION,
+    let depths = rig.zip(sighting.corner_depths);
+    std::array::from_fn(|i| {
+        let (u, v) = (sighting.corners[i].x, sighting.corners[i].y);
+        PoseObservation {
+            point_in_world: in_world[i],
+            measured: match depths {
+                Some((rig, z)) => Measurement::Stereo(Vector3::new(u, v, u - rig.bf / z[i])),
+                None => Measurement::Mono(sighting.corners[i]),
+            },
+            information: CORNER_INFORMATION,
+        }
     })
 }
 
@@ -107,7 +121,7 @@ pub fn add_sightings(map: &mut Map, k: KeyFrameId, rig: &Rig) -> Vec<i32> {
     for (index, sighting) in sightings.iter().enumerate() {
         match map.markers.get_mut(&sighting.id) {
             Some(marker) if marker.side_m == sighting.side_m => {
-                let corners = corner_observations_of(marker, sighting);
+                let corners = corner_observations_of(marker, sighting, None);
                 if explains(rig, &world_from_camera, &corners, sighting.id) {
                     marker.observations.push((k, index));
                 }
@@ -185,6 +199,7 @@ mod tests {
             side_m: 0.2,
             corners,
             camera_from_marker: Some(camera_from_marker),
+            corner_depths: None,
         }
     }
 
@@ -238,6 +253,33 @@ mod tests {
         let nudged = second.retract(&nalgebra::Vector6::new(0.01, 0.0, 0.0, 0.0, 0.005, 0.0));
         let kept = corner_observations(&map, &[sighting(&second, &marker, 7)], &rig(), &nudged);
         assert_eq!(kept.len(), 4);
+        // With the corners' depths the observations carry them, and the true pose explains
+        // them; from a pose 5 cm further back each corner's disparity is off as well.
+        let camera_from_marker = second.inverse().compose(&marker);
+        let mut with_depth = sighting(&second, &marker, 7);
+        with_depth.corner_depths =
+            Some(marker_corners(0.2).map(|c| camera_from_marker.transform_point(&c).z));
+        let deep = corner_observations(&map, &[with_depth], &rig(), &second);
+        assert_eq!(deep.len(), 4);
+        let back = second.retract(&nalgebra::Vector6::new(0.0, 0.0, -0.05, 0.0, 0.0, 0.0));
+        let bf = rig().bf;
+        for (o, pixels) in deep.iter().zip(&observations) {
+            assert!(matches!(o.measured, Measurement::Stereo(_)));
+            assert!(matches!(pixels.measured, Measurement::Mono(_)));
+            assert!(chi2(&rig().camera, rig().stereo(), &second, o) < 1e-12);
+            let (with_depth, mono) = (
+                chi2(&rig().camera, rig().stereo(), &back, o),
+                chi2(&rig().camera, rig().stereo(), &back, pixels),
+            );
+            let z_true = second.inverse().transform_point(&o.point_in_world).z;
+            let z_back = back.inverse().transform_point(&o.point_in_world).z;
+            let disparity_error = bf / z_true - bf / z_back;
+            assert!(disparity_error.abs() > 0.1, "{disparity_error}");
+            assert!(
+                (with_depth - mono - disparity_error.powi(2)).abs() < 1e-9,
+                "{with_depth} against {mono}"
+            );
+        }
     }
 
     #[test]

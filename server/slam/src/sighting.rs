@@ -20,6 +20,10 @@ pub struct MarkerSighting {
     /// The detector's pose, when it is trustworthy (see [`MarkerSighting::from_detection`]);
     /// a marker is only mapped, and a lost robot only placed, from one.
     pub camera_from_marker: Option<Se3>,
+    /// Each corner's depth (camera z, metres) on the plane the depth image gives the marker,
+    /// when that plane agreed with the corners (see `MarkerPoseEstimate::corner_depths_m`). It
+    /// fixes the marker's distance, which its corners alone give poorly.
+    pub corner_depths: Option<[f64; 4]>,
 }
 
 impl MarkerSighting {
@@ -45,6 +49,9 @@ impl MarkerSighting {
                         e.camera_from_marker.translation.vector,
                     )
                 }),
+            corner_depths: estimate
+                .filter(|e| e.used_depth)
+                .and_then(|e| e.corner_depths_m),
         }
     }
 }

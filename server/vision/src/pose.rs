@@ -3,7 +3,7 @@
 
 use crate::aruco::Detection;
 use crate::camera::PinholeCamera;
-use crate::depth::{fit_plane_in_quad, DepthImage};
+use crate::depth::{fit_plane_in_quad, DepthImage, DepthPlane};
 use crate::CvError;
 use nalgebra::{Isometry3, Matrix3, Point2, Rotation3, Translation3, UnitQuaternion, Vector3};
 use opencv::calib3d;
@@ -24,6 +24,10 @@ pub struct MarkerPoseEstimate {
     pub depth_distance_m: Option<f64>,
     /// True when the translation was rescaled to the depth distance.
     pub used_depth: bool,
+    /// Depth (camera z, metres) of each corner on the plane fitted to the depth pixels inside
+    /// the marker, in the detection's corner order, when that plane was used: far steadier than
+    /// the depth pixels at the corners, which lie on the marker's border.
+    pub corner_depths_m: Option<[f64; 4]>,
 }
 
 /// Pose estimation for one camera and one marker size.
@@ -133,6 +137,7 @@ impl PoseEstimator {
 
         let mut depth_distance_m = None;
         let mut used_depth = false;
+        let mut corner_depths_m = None;
         if let Some((depth, agreement)) = depth {
             let corners = detection
                 .corners
@@ -149,6 +154,7 @@ impl PoseEstimator {
                 if (distance - corners_distance_m).abs() <= agreement * corners_distance_m {
                     translation = direction * distance;
                     used_depth = true;
+                    corner_depths_m = plane.and_then(|p| self.corner_depths(&p, &corners));
                 }
             }
         }
@@ -159,7 +165,22 @@ impl PoseEstimator {
             corners_distance_m,
             depth_distance_m,
             used_depth,
+            corner_depths_m,
         })
+    }
+
+    /// Where each corner's viewing ray meets `plane`, as depth (camera z); None when a ray
+    /// misses it in front of the camera.
+    fn corner_depths(&self, plane: &DepthPlane, corners: &[Point2<f64>; 4]) -> Option<[f64; 4]> {
+        let rays = self.rays(corners).ok()?;
+        let mut depths = [0.0; 4];
+        for (depth, ray) in depths.iter_mut().zip(&rays) {
+            // Rays have z = 1, so the ray parameter is the depth.
+            *depth = plane
+                .ray_parameter(ray)
+                .filter(|z| z.is_finite() && *z > 0.0)?;
+        }
+        Some(depths)
     }
 
     /// Viewing rays (z = 1) of pixels, undistorted when the lens has distortion.

@@ -226,5 +226,13 @@ mod tests {
             error.rotation.angle().to_degrees()
         );
         assert!(estimate.used_depth);
+        // Each corner's depth where the true corner is (the marker's corner order is ArUco's).
+        let h = 0.08;
+        let corners = [(-h, h), (h, h), (h, -h), (-h, -h)];
+        let depths = estimate.corner_depths_m.expect("depth was used");
+        for ((x, y), depth) in corners.iter().zip(depths) {
+            let z = (truth * nalgebra::Point3::new(*x, *y, 0.0)).z;
+            assert!((depth - z).abs() < 0.005, "{depth} against {z}");
+        }
     }
 }

@@ -1,9 +1,10 @@
 //! A keyframe's observation of a marker: its four corners reprojected (8-D), given the marker's
-//! pose and side length. ARCHITECTURE.md says why this replaces the paper's 6-D pose residual.
+//! pose and side length, and with the depth image, each corner's depth too (12-D, the depth in
+//! the form keypoints use). ARCHITECTURE.md says why this replaces the paper's 6-D pose residual.
 
-use crate::camera::Pinhole;
+use crate::camera::{DepthResidual, Pinhole, VirtualStereo, MIN_DEPTH};
 use crate::factor::Factor;
-use crate::factors::projection::point_in_camera_jacobian;
+use crate::factors::projection::{pixel_residual, point_in_camera_jacobian};
 use crate::lie::{hat, Se3};
 use crate::values::{Key, Kind, Values, VarId};
 use nalgebra::{DMatrixViewMut, Matrix3x6, Vector2, Vector3};
@@ -21,7 +22,8 @@ pub fn marker_corners(side: f64) -> [Vector3<f64>; 4] {
 }
 
 /// `r = [π(T⁻¹·M·c_k) − z_k]_{k=1..4}` for keyframe `T = world_from_camera` and marker
-/// `M = world_from_marker`.
+/// `M = world_from_marker`; with depths ([`Self::with_depths`]) each corner's entry is a
+/// keypoint's `[u, v, r_z]`.
 #[derive(Clone, Debug)]
 pub struct MarkerCornersFactor {
     keys: [VarId; 2],
@@ -29,6 +31,8 @@ pub struct MarkerCornersFactor {
     corners: [Vector3<f64>; 4],
     /// Detected corners (undistorted pixels), in [`marker_corners`] order.
     pub measured: [Vector2<f64>; 4],
+    /// The virtual stereo rig and each corner's measured right-image coordinate.
+    depth: Option<(VirtualStereo, [f64; 4])>,
 }
 
 impl MarkerCornersFactor {
@@ -44,6 +48,23 @@ impl MarkerCornersFactor {
             camera,
             corners: marker_corners(side),
             measured,
+            depth: None,
+        }
+    }
+
+    /// Adds each corner's measured depth (camera z, metres) through `stereo`.
+    pub fn with_depths(mut self, stereo: VirtualStereo, depths: [f64; 4]) -> Self {
+        let right = std::array::from_fn(|k| self.measured[k].x - stereo.bf / depths[k]);
+        self.depth = Some((stereo, right));
+        self
+    }
+
+    /// Entries per corner: 2 (pixels) or 3 (pixels and depth).
+    fn per_corner(&self) -> usize {
+        if self.depth.is_some() {
+            3
+        } else {
+            2
         }
     }
 }
@@ -58,7 +79,7 @@ impl Factor for MarkerCornersFactor {
     }
 
     fn residual_dim(&self) -> usize {
-        8
+        4 * self.per_corner()
     }
 
     fn evaluate(
@@ -72,16 +93,32 @@ impl Factor for MarkerCornersFactor {
         let camera_from_world = t.rotation.to_rotation_matrix().into_inner().transpose();
         let world_from_marker = m.rotation.to_rotation_matrix().into_inner();
         let camera_from_marker = camera_from_world * world_from_marker;
+        let n = self.per_corner();
         for (k, c) in self.corners.iter().enumerate() {
             let p_w = world_from_marker * c + m.translation;
             let p_c = camera_from_world * (p_w - t.translation);
-            let uv = self.camera.project(&p_c);
-            residual[2 * k] = uv.x - self.measured[k].x;
-            residual[2 * k + 1] = uv.y - self.measured[k].y;
+            let row = n * k;
+            let measured = [
+                self.measured[k].x,
+                self.measured[k].y,
+                self.depth.map_or(0.0, |(_, right)| right[k]),
+            ];
+            let stereo = self.depth.map(|(stereo, _)| stereo);
+            let r = pixel_residual(&self.camera, stereo, &measured, &p_c);
+            residual[row..row + n].copy_from_slice(&r[..n]);
             if let Some(jac) = jacobian.as_mut() {
+                // ∂r/∂p_c: the projection's rows, and the depth's row as the keypoints' factor.
                 let d_uv = self.camera.project_jacobian(&p_c);
-                jac.fixed_view_mut::<2, 6>(2 * k, 0)
-                    .copy_from(&(d_uv * point_in_camera_jacobian(&p_c)));
+                let mut dg = nalgebra::Matrix3::zeros();
+                dg.fixed_view_mut::<2, 3>(0, 0).copy_from(&d_uv);
+                if let Some(stereo) = stereo {
+                    if stereo.residual == DepthResidual::RightImage {
+                        dg.fixed_view_mut::<1, 3>(2, 0).copy_from(&d_uv.row(0));
+                    }
+                    if p_c.z >= MIN_DEPTH {
+                        dg[(2, 2)] += stereo.bf / (p_c.z * p_c.z);
+                    }
+                }
                 // M·Exp([ρ; φ])·c ≈ M·c + R_M·ρ − R_M·[c]×·φ.
                 let mut d_marker = Matrix3x6::zeros();
                 d_marker
@@ -90,8 +127,14 @@ impl Factor for MarkerCornersFactor {
                 d_marker
                     .fixed_view_mut::<3, 3>(0, 3)
                     .copy_from(&(-camera_from_marker * hat(c)));
-                jac.fixed_view_mut::<2, 6>(2 * k, 6)
-                    .copy_from(&(d_uv * d_marker));
+                let d_pose = dg * point_in_camera_jacobian(&p_c);
+                let d_marker = dg * d_marker;
+                for i in 0..n {
+                    for j in 0..6 {
+                        jac[(row + i, j)] = d_pose[(i, j)];
+                        jac[(row + i, 6 + j)] = d_marker[(i, j)];
+                    }
+                }
             }
         }
     }
@@ -133,13 +176,19 @@ mod tests {
             let f = MarkerCornersFactor::new(kf, marker, camera(), 0.08, measured);
             let err = jacobian_error(&f, &values);
             prop_assert!(err < 1e-6, "{err}");
+            for form in [VirtualStereo::disparity(40.0), VirtualStereo::right_image(40.0)] {
+                let f = MarkerCornersFactor::new(kf, marker, camera(), 0.08, measured)
+                    .with_depths(form, [distance * 0.9, distance, distance * 1.1, distance]);
+                let err = jacobian_error(&f, &values);
+                prop_assert!(err < 1e-6, "{form:?}: {err}");
+            }
         }
     }
 
-    #[test]
-    fn corners_of_a_facing_marker_land_where_the_pinhole_puts_them() {
-        // A marker 1 m ahead facing the camera (its z towards the camera): top-left corner
-        // (−4, +4) cm in the marker frame is (−4, −4) cm in the camera frame: up and left.
+    /// An 8 cm marker 1 m ahead of a camera at the origin, facing it (its z towards the
+    /// camera), and where the pinhole puts its corners: the top-left corner (−4, +4) cm in the
+    /// marker frame is (−4, −4) cm in the camera frame, up and left.
+    fn facing_marker_ahead() -> (Values, Key<Se3>, Key<Se3>, [Vector2<f64>; 4]) {
         let mut values = Values::new();
         let kf = values.add(Se3::identity());
         let facing = UnitQuaternion::from_euler_angles(std::f64::consts::PI, 0.0, 0.0);
@@ -152,6 +201,32 @@ mod tests {
             Vector2::new(cam.cx + dx, cam.cy + dy),
             Vector2::new(cam.cx - dx, cam.cy + dy),
         ];
+        (values, kf, marker, measured)
+    }
+
+    #[test]
+    fn a_corner_depth_off_by_one_pixel_of_disparity_gives_a_residual_of_one() {
+        // Every corner of the facing marker is at depth 1 m (its face is square to the camera).
+        let (values, kf, marker, measured) = facing_marker_ahead();
+        let cam = camera();
+        let bf = 40.0;
+        // Disparity bf/z: 40 px at 1 m; 41 px at the depth that the third corner reports.
+        let depths = [1.0, 1.0, bf / 41.0, 1.0];
+        let f = MarkerCornersFactor::new(kf, marker, cam, 0.08, measured)
+            .with_depths(VirtualStereo::disparity(bf), depths);
+        assert_eq!(f.residual_dim(), 12);
+        let mut r = [9.0; 12];
+        f.evaluate(&values, &mut r, None);
+        for (i, v) in r.iter().enumerate() {
+            let expected = if i == 8 { 1.0 } else { 0.0 };
+            assert!((v - expected).abs() < 1e-9, "entry {i}: {r:?}");
+        }
+    }
+
+    #[test]
+    fn corners_of_a_facing_marker_land_where_the_pinhole_puts_them() {
+        let (values, kf, marker, measured) = facing_marker_ahead();
+        let cam = camera();
         let f = MarkerCornersFactor::new(kf, marker, cam, 0.08, measured);
         let mut r = [1.0; 8];
         f.evaluate(&values, &mut r, None);
