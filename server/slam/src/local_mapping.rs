@@ -261,7 +261,10 @@ impl LocalMapper {
             None => world_from_camera,
         };
         self.since_whole_map += 1;
-        self.optimise_whole_map(map, &rig)?;
+        // A failed solve leaves the map as it was; the keyframe goes in all the same.
+        if let Err(error) = self.optimise_whole_map(map, &rig) {
+            tracing::warn!(%error, "the whole-map optimisation failed; the map stays as it was");
+        }
         // The previous keyframe's BA has landed: its neighbours' redundancy is as settled as it
         // gets (ORB-SLAM culls right after local BA; here that is the same point in both BA
         // modes). The newest keyframe and the reference stay.
