@@ -5,7 +5,7 @@ use clap::{Parser, Subcommand, ValueEnum};
 use std::path::PathBuf;
 use vsgraphs_eval::metrics::{Alignment, Compare, Relation};
 use vsgraphs_eval::posegraph;
-use vsgraphs_eval::scenario::ScenarioOptions;
+use vsgraphs_eval::scenario::{DictionaryChoice, ScenarioOptions};
 use vsgraphs_eval::score::{self, Metric};
 use vsgraphs_eval::semantics::{self, MapAlignment};
 use vsgraphs_optim::factors::pose::PoseError;
@@ -167,6 +167,10 @@ enum Command {
         /// directory.
         #[arg(long)]
         out: Option<PathBuf>,
+        /// The semantic dictionary the server gets, as the simulator writes it: v1 (wall-marker
+        /// groups), v2 (a meta marker per space) or none (rooms and corridors from geometry).
+        #[arg(long, value_enum, default_value_t = DictionaryChoice::V1)]
+        dictionary: DictionaryChoice,
         /// Print JSON instead of the tables.
         #[arg(long)]
         json: bool,
@@ -242,6 +246,7 @@ fn main() -> anyhow::Result<()> {
             seed,
             config,
             out,
+            dictionary,
             json,
         } => {
             let config = match config {
@@ -253,6 +258,7 @@ fn main() -> anyhow::Result<()> {
                 robot,
                 limit,
                 seed,
+                dictionary,
                 ..ScenarioOptions::default()
             };
             let run = vsgraphs_eval::scenario::run(&config, &scenario, &options, |done, total| {

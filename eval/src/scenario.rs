@@ -30,6 +30,20 @@ pub struct ScenarioOptions {
     /// Renderer noise seed (the same seed gives the same frames).
     pub seed: u64,
     pub jpeg_quality: u8,
+    /// The semantic dictionary the server is given, as the simulator writes it.
+    pub dictionary: DictionaryChoice,
+}
+
+/// Which semantic dictionary a scenario's run gets.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, clap::ValueEnum)]
+pub enum DictionaryChoice {
+    /// Version 1: each space's wall markers.
+    #[default]
+    V1,
+    /// Version 2: one meta marker per space; walls, rooms and corridors from geometry.
+    V2,
+    /// None: rooms and corridors from the walls' geometry alone, no doorways.
+    None,
 }
 
 impl Default for ScenarioOptions {
@@ -39,6 +53,7 @@ impl Default for ScenarioOptions {
             limit: None,
             seed: 1,
             jpeg_quality: 90,
+            dictionary: DictionaryChoice::V1,
         }
     }
 }
@@ -90,6 +105,10 @@ pub struct StageMedians {
     pub mapping_mean: f64,
     /// Mean local BA solve time per frame, on its own thread.
     pub local_ba_mean: f64,
+    /// 99th percentiles per frame of tracking and of mapping (the tracker's wait for its
+    /// keyframe to be mapped): the frames a robot would drop.
+    pub tracking_p99: f64,
+    pub mapping_p99: f64,
 }
 
 /// Renders and runs one robot of `scenario`; `progress(done, total)` after every frame.
@@ -123,7 +142,14 @@ pub fn run(
         .context("reading the building's ground truth as a model")?;
     // The semantic dictionary the simulator writes for the building, as a robot's operator
     // would give the server.
-    let dictionary = Dictionary::parse(&building.dictionary_v1().to_string())
+    let written = match options.dictionary {
+        DictionaryChoice::V1 => Some(building.dictionary_v1()),
+        DictionaryChoice::V2 => Some(building.dictionary_v2()),
+        DictionaryChoice::None => None,
+    };
+    let dictionary = written
+        .map(|json| Dictionary::parse(&json.to_string()))
+        .transpose()
         .map_err(|e| anyhow::anyhow!("the building's dictionary: {e}"))?;
 
     // Frames are rendered and encoded on another thread, a few ahead of the pipeline.
@@ -150,7 +176,7 @@ pub fn run(
             camera: &camera,
             depth_scale: DEPTH_SCALE,
             total,
-            dictionary: Some(&dictionary),
+            dictionary: dictionary.as_ref(),
         };
         offline::run_frames(config, source, receiver.into_iter(), progress)
     })?;
@@ -232,6 +258,8 @@ fn medians(s: &OfflineSummary) -> StageMedians {
         tracking: offline::median(&s.tracking_ms),
         mapping_mean: s.mapping_ms.iter().sum::<f64>() / s.mapping_ms.len().max(1) as f64,
         local_ba_mean: s.local_ba_ms.iter().sum::<f64>() / s.local_ba_ms.len().max(1) as f64,
+        tracking_p99: offline::quantile(&s.tracking_ms, 0.99),
+        mapping_p99: offline::quantile(&s.mapping_ms, 0.99),
     }
 }
 
@@ -245,8 +273,16 @@ pub fn print_table(run: &ScenarioRun) {
     }
     let m = &run.median_ms;
     println!(
-        "median ms per frame: pipeline {:.2} (decode {:.2}, markers {:.2}, features {:.2}, tracking {:.2}); means per frame: mapping {:.2}, local BA {:.2} (wherever it was solved)",
-        m.pipeline, m.decode, m.markers, m.features, m.tracking, m.mapping_mean, m.local_ba_mean
+        "median ms per frame: pipeline {:.2} (decode {:.2}, markers {:.2}, features {:.2}, tracking {:.2}); means per frame: mapping {:.2}, local BA {:.2} (wherever it was solved); p99: tracking {:.2}, mapping {:.2}",
+        m.pipeline,
+        m.decode,
+        m.markers,
+        m.features,
+        m.tracking,
+        m.mapping_mean,
+        m.local_ba_mean,
+        m.tracking_p99,
+        m.mapping_p99
     );
     println!();
     match &run.ate {

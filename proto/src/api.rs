@@ -236,7 +236,8 @@ pub enum SpaceKind {
 #[cfg_attr(feature = "openapi", derive(ToSchema))]
 pub struct MapSpace {
     pub id: u32,
-    /// Its name in the semantic dictionary.
+    /// Its name in the semantic dictionary; `room N` or `corridor N` (numbered by kind) for a
+    /// space found from the walls' geometry alone.
     pub name: String,
     pub kind: SpaceKind,
     /// Metres, in the map's frame.

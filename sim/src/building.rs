@@ -247,22 +247,42 @@ impl Building {
     /// wall markers (one list of 4 for a room, of 2 for a corridor) and door markers; per door
     /// its naming marker.
     pub fn dictionary_v1(&self) -> serde_json::Value {
-        let rooms: Vec<serde_json::Value> = self
-            .spaces
-            .iter()
-            .map(|s| {
-                let wall_markers: Vec<u32> = s
-                    .walls
-                    .iter()
-                    .flat_map(|&w| self.walls[w].markers.iter().copied())
-                    .collect();
-                serde_json::json!({
-                    "name": s.name,
-                    "markers": [wall_markers],
-                    "doorMarkers": s.door_markers,
-                })
+        self.dictionary_with(|s| {
+            let wall_markers: Vec<u32> = self.wall_markers(s).collect();
+            serde_json::json!({
+                "name": s.name,
+                "markers": [wall_markers],
+                "doorMarkers": s.door_markers,
             })
-            .collect();
+        })
+    }
+
+    /// The same in the reference's version-2 JSON: per room or corridor one "meta marker" (its
+    /// first wall's marker) and whether it is a corridor; walls come from geometry.
+    pub fn dictionary_v2(&self) -> serde_json::Value {
+        self.dictionary_with(|s| {
+            serde_json::json!({
+                "name": s.name,
+                "isCorridor": s.kind == SpaceKind::Corridor,
+                "metaMarker": self.wall_markers(s).next(),
+                "doorMarkers": s.door_markers,
+            })
+        })
+    }
+
+    fn wall_markers<'a>(&'a self, space: &'a SpaceTruth) -> impl Iterator<Item = u32> + 'a {
+        space
+            .walls
+            .iter()
+            .flat_map(|&w| self.walls[w].markers.iter().copied())
+    }
+
+    /// A dictionary with `room` for each space's entry, and the doors with their markers.
+    fn dictionary_with(
+        &self,
+        room: impl Fn(&SpaceTruth) -> serde_json::Value,
+    ) -> serde_json::Value {
+        let rooms: Vec<serde_json::Value> = self.spaces.iter().map(room).collect();
         let doors: Vec<serde_json::Value> = self
             .doorways
             .iter()

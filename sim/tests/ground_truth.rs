@@ -168,6 +168,35 @@ fn real_v1_files_have_the_keys_we_write() {
     assert_eq!(keys(&real["doors"][0]), keys(&ours["doors"][0]));
 }
 
+/// Version 2: the keys of the reference's real files; each space's meta marker is a wall
+/// marker of that space, and the corridor flag is its kind.
+#[test]
+fn the_v2_dictionary_has_the_real_files_keys_and_a_wall_marker_per_space() {
+    let b = Building::from_plan(&scenario("seq02").unwrap()).unwrap();
+    let ours = b.dictionary_v2();
+    for (room, s) in ours["rooms"].as_array().unwrap().iter().zip(&b.spaces) {
+        let meta = room["metaMarker"].as_u64().unwrap() as u32;
+        assert!(s.walls.iter().any(|&w| b.walls[w].markers.contains(&meta)));
+        assert_eq!(
+            room["isCorridor"].as_bool().unwrap(),
+            s.kind == SpaceKind::Corridor
+        );
+    }
+    let Some(dir) = vsgraphs_optim::testing::shared_data("../reference/env_database/v2") else {
+        return;
+    };
+    // A real file that lists doors as well as rooms.
+    let text = std::fs::read_to_string(dir.join("autosense_seq02.json")).unwrap();
+    let real: serde_json::Value = serde_json::from_str(&text).unwrap();
+    let keys = |v: &serde_json::Value| {
+        let mut k: Vec<String> = v.as_object().unwrap().keys().cloned().collect();
+        k.sort();
+        k
+    };
+    assert_eq!(keys(&real["rooms"][0]), keys(&ours["rooms"][0]));
+    assert_eq!(keys(&real["doors"][0]), keys(&ours["doors"][0]));
+}
+
 #[test]
 fn broken_plans_are_refused_with_their_reason() {
     let mut plan = scenario("seq06").unwrap();

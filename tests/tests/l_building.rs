@@ -2,30 +2,30 @@
 //! two corridors meeting at a wide corner opening, offices on both sides of one leg and a lab
 //! off the other, walked at 15 frames a second (the built-ins run at 30). Through the server's
 //! pipeline, with the dictionary the simulator writes for it: every room, corridor and doorway
-//! is found where the building has it, and nothing that is not there.
+//! is found where the building has it, and nothing that is not there. Without one, its rooms
+//! and corridors come from the walls' geometry alone.
 
-use vsgraphs_eval::scenario::{self, ScenarioOptions};
+use vsgraphs_eval::scenario::{self, DictionaryChoice, ScenarioOptions, ScenarioRun};
+use vsgraphs_eval::semantics::{KindScore, SemanticReport};
 use vsgraphs_pipeline::PipelineConfig;
 use vsgraphs_sim::scenarios::Scenario;
 
-#[test]
-fn an_l_shaped_building_gets_its_rooms_corridors_and_doorways() {
+/// The building walked through the pipeline with `dictionary`, its scores printed.
+fn walk(dictionary: DictionaryChoice) -> (ScenarioRun, SemanticReport) {
     let path = concat!(env!("CARGO_MANIFEST_DIR"), "/data/l_building.json");
     let scenario = Scenario::load(path).unwrap();
-    let run = scenario::run(
-        &PipelineConfig::default(),
-        &scenario,
-        &ScenarioOptions::default(),
-        |_, _| {},
-    )
-    .unwrap();
+    let options = ScenarioOptions {
+        dictionary,
+        ..ScenarioOptions::default()
+    };
+    let run = scenario::run(&PipelineConfig::default(), &scenario, &options, |_, _| {}).unwrap();
     let report = run
         .semantics
-        .as_ref()
+        .clone()
         .expect("the map aligns to the building");
     let ate = run.ate.as_ref().unwrap();
     eprintln!(
-        "L building: {} frames, {} tracked, ATE {:.4} m, markers {:.3} m RMS",
+        "L building, dictionary {dictionary:?}: {} frames, {} tracked, ATE {:.4} m, markers {:.3} m RMS",
         run.frames,
         run.tracked,
         ate.stats.rmse,
@@ -40,6 +40,16 @@ fn an_l_shaped_building_gets_its_rooms_corridors_and_doorways() {
             kind.kind, kind.matched, kind.reference, kind.estimated, kind.errors, kind.unseen
         );
     }
+    (run, report)
+}
+
+fn kind<'a>(report: &'a SemanticReport, name: &str) -> &'a KindScore {
+    report.kinds.iter().find(|k| k.kind == name).unwrap()
+}
+
+#[test]
+fn an_l_shaped_building_gets_its_rooms_corridors_and_doorways() {
+    let (run, report) = walk(DictionaryChoice::V1);
     // Tracking at half the built-ins' frame rate loses a few dozen frames in the turns (the
     // events above say where); the map stays one.
     assert!(
@@ -49,7 +59,7 @@ fn an_l_shaped_building_gets_its_rooms_corridors_and_doorways() {
         run.frames
     );
     assert_eq!(run.maps, 1);
-    let kind = |name: &str| report.kinds.iter().find(|k| k.kind == name).unwrap();
+    let kind = |name: &str| kind(&report, name);
     for name in ["doorways", "rooms", "corridors"] {
         let k = kind(name);
         assert_eq!(
@@ -70,4 +80,26 @@ fn an_l_shaped_building_gets_its_rooms_corridors_and_doorways() {
     assert!(worst("rooms", "centre_m") < 0.10, "{:?}", kind("rooms"));
     // Every wall estimated is a wall of the building.
     assert_eq!(kind("walls").precision, 1.0, "{:?}", kind("walls"));
+}
+
+/// No dictionary: every marker is a wall marker (door markers too), and the rooms and corridors
+/// come from the walls' geometry. A corridor's place along its length is its markers' centre,
+/// which without a dictionary counts the door markers beside its openings (BENCHMARKS.md has
+/// the figures); rooms are placed by their four walls.
+#[test]
+fn an_l_shaped_building_without_a_dictionary_gets_its_rooms_and_corridors_from_geometry() {
+    let (_, report) = walk(DictionaryChoice::None);
+    for name in ["rooms", "corridors"] {
+        let k = kind(&report, name);
+        assert_eq!(
+            (k.matched, k.estimated),
+            (k.reference, k.reference),
+            "{name}: {k:?}"
+        );
+    }
+    let rooms = kind(&report, "rooms");
+    assert!(rooms.errors["centre_m"].max < 0.10, "{rooms:?}");
+    // No door markers known, so no doorways; and still no wall that is not the building's.
+    assert_eq!(kind(&report, "doorways").estimated, 0);
+    assert_eq!(kind(&report, "walls").precision, 1.0);
 }

@@ -31,7 +31,8 @@ pub struct SemanticsConfig {
     /// Build walls, rooms and corridors from the maps' markers.
     pub enabled: bool,
     /// The semantic dictionary (the reference's JSON, version 1 or 2); empty for none (then
-    /// every marker is a wall marker and there are walls only).
+    /// every marker is a wall marker, rooms and corridors come from the walls' geometry, and
+    /// there are no doorways).
     pub dictionary_file: PathBuf,
     /// Keyframes between optimisations of each map's whole S-Graph (0: none).
     pub optimise_every_keyframes: usize,

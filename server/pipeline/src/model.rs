@@ -163,13 +163,25 @@ pub fn set_semantics(
                 .collect(),
         })
         .collect();
+    // Spaces found from geometry alone are numbered by kind, in the order they were found.
+    let mut numbered = [0usize; 2];
     view.spaces = semantics
         .spaces
         .iter()
         .enumerate()
         .map(|(i, s)| MapSpace {
             id: i as u32,
-            name: name(s.entry),
+            name: match s.entry {
+                Some(entry) => name(entry),
+                None => {
+                    let (slot, kind) = match s.kind {
+                        vsgraphs_semantics::SpaceKind::Room => (0, "room"),
+                        vsgraphs_semantics::SpaceKind::Corridor => (1, "corridor"),
+                    };
+                    numbered[slot] += 1;
+                    format!("{kind} {}", numbered[slot])
+                }
+            },
             kind: match s.kind {
                 vsgraphs_semantics::SpaceKind::Room => api::SpaceKind::Room,
                 vsgraphs_semantics::SpaceKind::Corridor => api::SpaceKind::Corridor,

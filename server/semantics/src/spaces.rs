@@ -33,11 +33,12 @@ impl Default for SpaceChecks {
     }
 }
 
-/// A room or corridor of the dictionary, found in the map.
+/// A room or corridor found in the map.
 #[derive(Clone, Debug, PartialEq)]
 pub struct Space {
-    /// The dictionary's entry (index in `Dictionary::spaces`).
-    pub entry: usize,
+    /// The dictionary's entry (index in `Dictionary::spaces`); `None` for a space found from
+    /// the walls' geometry alone ([`crate::geometry`]).
+    pub entry: Option<usize>,
     pub kind: SpaceKind,
     /// Its walls (indices in the wall list): a room's as two facing pairs `[x_a, x_b, y_a, y_b]`,
     /// a corridor's as a facing pair per section found.
@@ -52,7 +53,8 @@ pub struct Missing {
     pub why: String,
 }
 
-/// The dictionary's rooms and corridors that `walls` (with the markers' positions, by id) make.
+/// The dictionary's rooms and corridors that `walls` (with the markers' positions, by id) make
+/// (version 1; version 2's come from geometry, [`crate::geometry`]).
 pub fn spaces_of(
     dictionary: &Dictionary,
     walls: &[Wall],
@@ -63,12 +65,7 @@ pub fn spaces_of(
     let mut missing = Vec::new();
     for (entry, space) in dictionary.spaces.iter().enumerate() {
         if dictionary.version == Version::V2 {
-            missing.push(Missing {
-                entry,
-                why: "version 2 names a space by one marker; its walls come from geometry, \
-                      which is not built yet"
-                    .into(),
-            });
+            // Its spaces come from the walls' geometry, named by their meta markers.
             continue;
         }
         let mut found_walls = Vec::new();
@@ -92,7 +89,7 @@ pub fn spaces_of(
         }
         let centre = centres.iter().sum::<Vector3<f64>>() / centres.len() as f64;
         spaces.push(Space {
-            entry,
+            entry: Some(entry),
             kind: space.kind,
             walls: found_walls,
             centre,
@@ -170,7 +167,7 @@ fn group_walls(
 }
 
 /// Two walls that face each other across a plausible width.
-fn facing(a: &Plane, b: &Plane, checks: &SpaceChecks) -> Result<(), String> {
+pub(crate) fn facing(a: &Plane, b: &Plane, checks: &SpaceChecks) -> Result<(), String> {
     let cos = a.normal.dot(&b.normal);
     if cos > -checks.max_angle_rad.cos() {
         return Err(format!(
@@ -187,7 +184,7 @@ fn facing(a: &Plane, b: &Plane, checks: &SpaceChecks) -> Result<(), String> {
     Ok(())
 }
 
-fn perpendicular(a: &Plane, b: &Plane, checks: &SpaceChecks) -> Result<(), String> {
+pub(crate) fn perpendicular(a: &Plane, b: &Plane, checks: &SpaceChecks) -> Result<(), String> {
     let cos = a.normal.dot(&b.normal).abs();
     if cos > checks.max_angle_rad.sin() {
         return Err(format!(
@@ -237,12 +234,7 @@ mod tests {
             &WallAssociation::default(),
             &WallPoints::default(),
         );
-        let position = |m| {
-            markers
-                .iter()
-                .find(|(id, _)| *id == m)
-                .map(|(_, p)| p.translation)
-        };
+        let position = crate::testing::position_in(markers);
         let (spaces, missing) = spaces_of(dictionary, &walls, position, &SpaceChecks::default());
         (walls, spaces, missing)
     }

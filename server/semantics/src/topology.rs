@@ -16,13 +16,15 @@ impl SemanticMap {
         self.doorways[doorway]
             .spaces
             .iter()
-            .filter_map(|&entry| self.spaces.iter().position(|s| s.entry == entry))
+            .filter_map(|&entry| self.spaces.iter().position(|s| s.entry == Some(entry)))
             .collect()
     }
 
     /// The doorways (indices) that open into space `space`.
     pub fn doorways_of_space(&self, space: usize) -> Vec<usize> {
-        let entry = self.spaces[space].entry;
+        let Some(entry) = self.spaces[space].entry else {
+            return Vec::new();
+        };
         (0..self.doorways.len())
             .filter(|&d| self.doorways[d].spaces.contains(&entry))
             .collect()
@@ -169,7 +171,7 @@ mod tests {
             wall([0.0, 6.0, 0.0], [0.0, -1.0, 0.0]),
         ];
         let space = |entry, kind, walls, centre: [f64; 3]| Space {
-            entry,
+            entry: Some(entry),
             kind,
             walls,
             centre: Vector3::from(centre),

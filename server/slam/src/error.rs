@@ -12,8 +12,8 @@ pub enum TrackError {
     LocalBa(#[from] vsgraphs_optim::SolveError),
     #[error("whole-map optimisation failed: {0}")]
     WholeMap(vsgraphs_optim::SolveError),
-    #[error("the local bundle adjustment thread stopped")]
-    BaThreadStopped,
+    #[error("a background optimisation thread of the map stopped")]
+    WorkerStopped,
     #[error("map {0:?} has no writer")]
     UnknownMap(MapId),
     #[error("the map's writer: {0}")]

@@ -61,11 +61,40 @@ pub struct GlobalReport {
     pub applied: bool,
 }
 
-/// One relative-pose edge: keyframes `i` and `j`, and the points they share.
+/// One relative-pose edge: keyframes `i` and `j`, their relative pose in the map as it was,
+/// and the points they share.
 struct Edge {
     i: KeyFrameId,
     j: KeyFrameId,
+    i_from_j: Se3,
     shared: usize,
+}
+
+/// A whole-map optimisation built from the map and ready to solve anywhere (it is `Send` and
+/// holds no reference to the map), with what is needed to write its result back to the map as
+/// it will be by then ([`apply_global`]).
+pub struct GlobalJob {
+    report: GlobalReport,
+    iterations: usize,
+    bf: f64,
+    values: Values,
+    /// The live keyframes, their variables and their poses when the job was made.
+    keyframes: Vec<(KeyFrameId, Key<Se3>, Se3)>,
+    hold: HashSet<KeyFrameId>,
+    edges: Vec<Edge>,
+    markers: Vec<MarkerVar>,
+    sightings: Vec<MarkerCornersFactor>,
+    /// Whose sighting each factor is: marker id, keyframe, index in its frame.
+    sighted: Vec<(i32, KeyFrameId, usize)>,
+    walls: Vec<WallPrior>,
+}
+
+/// A solved (or failed) whole-map optimisation, to apply to the map it was built from.
+pub struct SolvedGlobal {
+    job: GlobalJob,
+    /// The solution unless the solver failed or the markers bent the keyframes' graph; the
+    /// sightings left out as outliers.
+    outcome: Result<Option<(Values, HashSet<usize>)>, SolveError>,
 }
 
 /// Optimises the whole map (see the module's comment) and applies the result unless the
@@ -77,174 +106,295 @@ pub fn optimise_map(
     hold: &HashSet<KeyFrameId>,
     iterations: usize,
 ) -> Result<GlobalReport, SolveError> {
-    let live: Vec<KeyFrameId> = map
-        .keyframes
-        .iter()
-        .filter(|k| !k.is_culled())
-        .map(|k| k.id)
-        .collect();
-    let mut report = GlobalReport {
-        keyframes: live.len(),
-        ..GlobalReport::default()
-    };
-    if live.len() < 2 || map.markers.is_empty() {
-        return Ok(report);
+    match GlobalJob::prepare(map, rig, walls, hold, iterations) {
+        Some(job) => apply_global(map, rig, job.solve()),
+        None => Ok(GlobalReport {
+            keyframes: map.live_keyframes(),
+            ..GlobalReport::default()
+        }),
     }
-    let mut values = Values::new();
-    let mut pose_keys: HashMap<KeyFrameId, Key<Se3>> = HashMap::new();
-    for &k in &live {
-        let key = values.add(map.keyframe(k).world_from_camera);
-        if hold.contains(&k) {
-            values.set_fixed(key.id, true);
-            report.held += 1;
-        }
-        pose_keys.insert(k, key);
-    }
-    if report.held == 0 {
-        let newest = live[live.len() - 1];
-        values.set_fixed(pose_keys[&newest].id, true);
-        report.held = 1;
-    }
-    let edges = essential_edges(map, &live);
-    let mut marker_vars = Vec::new();
-    for marker in map.markers.values() {
-        marker_vars.push(MarkerVar {
-            id: marker.id,
-            key: values.add(marker.world_from_marker),
-            world_from_marker: marker.world_from_marker,
-        });
-    }
-    let (sightings, sighted) = marker_sightings(map, rig, &pose_keys, &marker_vars);
-    report.edges = edges.len();
-    report.markers = marker_vars.len();
-    report.sightings = sightings.len();
+}
 
-    let build = |values: Values, skip: &HashSet<usize>| {
-        let mut problem = Problem::new(values);
-        for edge in &edges {
-            let (a, b) = (
-                map.keyframe(edge.i).world_from_camera,
-                map.keyframe(edge.j).world_from_camera,
-            );
+impl GlobalJob {
+    /// The optimisation of `map` as it is now; none when there is nothing to optimise (fewer
+    /// than two keyframes, or no marker).
+    pub fn prepare(
+        map: &Map,
+        rig: &Rig,
+        walls: &[WallPrior],
+        hold: &HashSet<KeyFrameId>,
+        iterations: usize,
+    ) -> Option<Self> {
+        let live: Vec<KeyFrameId> = map
+            .keyframes
+            .iter()
+            .filter(|k| !k.is_culled())
+            .map(|k| k.id)
+            .collect();
+        let mut report = GlobalReport {
+            keyframes: live.len(),
+            ..GlobalReport::default()
+        };
+        if live.len() < 2 || map.markers.is_empty() {
+            return None;
+        }
+        let mut values = Values::new();
+        let mut keyframes = Vec::with_capacity(live.len());
+        let mut pose_keys: HashMap<KeyFrameId, Key<Se3>> = HashMap::new();
+        let mut held = hold.clone();
+        if !live.iter().any(|k| hold.contains(k)) {
+            held.insert(live[live.len() - 1]);
+        }
+        for &k in &live {
+            let pose = map.keyframe(k).world_from_camera;
+            let key = values.add(pose);
+            if held.contains(&k) {
+                values.set_fixed(key.id, true);
+                report.held += 1;
+            }
+            pose_keys.insert(k, key);
+            keyframes.push((k, key, pose));
+        }
+        let edges = essential_edges(map, &live);
+        let mut markers = Vec::new();
+        for marker in map.markers.values() {
+            markers.push(MarkerVar {
+                id: marker.id,
+                key: values.add(marker.world_from_marker),
+                world_from_marker: marker.world_from_marker,
+            });
+        }
+        let (sightings, sighted) = marker_sightings(map, rig, &pose_keys, &markers);
+        report.edges = edges.len();
+        report.markers = markers.len();
+        report.sightings = sightings.len();
+        Some(Self {
+            report,
+            iterations,
+            bf: rig.bf,
+            values,
+            keyframes,
+            hold: held,
+            edges,
+            markers,
+            sightings,
+            sighted,
+            walls: walls.to_vec(),
+        })
+    }
+
+    fn pose_key(&self, k: KeyFrameId) -> Key<Se3> {
+        let index = self
+            .keyframes
+            .binary_search_by_key(&k, |(id, _, _)| *id)
+            .expect("edges join live keyframes");
+        self.keyframes[index].1
+    }
+
+    /// The problem, without the sightings in `skip`.
+    fn problem(&self, skip: &HashSet<usize>) -> (Problem, WallReport) {
+        let mut problem = Problem::new(self.values.clone());
+        for edge in &self.edges {
             problem
                 .add(
                     BetweenFactor::new(
-                        pose_keys[&edge.i],
-                        pose_keys[&edge.j],
-                        a.inverse().compose(&b),
+                        self.pose_key(edge.i),
+                        self.pose_key(edge.j),
+                        edge.i_from_j,
                         PoseError::LogMap,
                     ),
-                    edge_information(rig, edge.shared),
+                    edge_information(self.bf, edge.shared),
                     None,
                 )
-                .expect("keys made above");
+                .expect("keys made with the values");
         }
-        for (index, factor) in sightings.iter().enumerate() {
+        for (index, factor) in self.sightings.iter().enumerate() {
             if skip.contains(&index) {
                 continue;
             }
-            let limit = if factor.residual_dim() == 8 {
-                CHI2_8D
-            } else {
-                CHI2_12D
-            };
             problem
                 .add(
                     factor.clone(),
                     Information::isotropic(factor.residual_dim(), 1.0).expect("positive sigma"),
-                    Some(Kernel::Huber(limit.sqrt())),
+                    Some(Kernel::Huber(chi2_limit(factor).sqrt())),
                 )
-                .expect("keys made above");
+                .expect("keys made with the values");
         }
         let walls = add_wall_terms(
             &mut problem,
-            walls,
-            &marker_vars,
+            &self.walls,
+            &self.markers,
             &[],
             &WallTerms::default(),
         );
         (problem, walls)
-    };
-    let options = Options {
-        max_iterations: iterations,
-        relative_cost_tolerance: COST_TOLERANCE,
-        threads: THREADS,
-        ..Options::default()
-    };
-    // First solve, then again without the sightings the result cannot explain.
-    let (mut problem, first_walls) = build(values.clone(), &HashSet::new());
-    report.initial_cost = problem.cost();
-    let first = Solver::new(options.clone()).solve(&mut problem)?;
-    report.iterations = first.iterations.len();
-    report.solve_ms = first.total_time.as_secs_f64() * 1e3;
-    let outliers: HashSet<usize> = sightings
-        .iter()
-        .enumerate()
-        .filter(|(_, f)| {
-            let limit = if f.residual_dim() == 8 {
-                CHI2_8D
-            } else {
-                CHI2_12D
+    }
+
+    /// Solves the job: once with every sighting, then again without those the first result
+    /// cannot explain. Refuses (no solution) a result that bends a relative pose beyond what
+    /// its shared points allow: then the markers are wrong (a misread id, a moved marker).
+    pub fn solve(mut self) -> SolvedGlobal {
+        let options = Options {
+            max_iterations: self.iterations,
+            relative_cost_tolerance: COST_TOLERANCE,
+            threads: THREADS,
+            ..Options::default()
+        };
+        let (mut problem, first_walls) = self.problem(&HashSet::new());
+        self.report.initial_cost = problem.cost();
+        let first = match Solver::new(options.clone()).solve(&mut problem) {
+            Ok(first) => first,
+            Err(error) => {
+                return SolvedGlobal {
+                    job: self,
+                    outcome: Err(error),
+                }
+            }
+        };
+        self.report.iterations = first.iterations.len();
+        self.report.solve_ms = first.total_time.as_secs_f64() * 1e3;
+        let outliers: HashSet<usize> = self
+            .sightings
+            .iter()
+            .enumerate()
+            .filter(|(_, f)| chi2_of(f, problem.values()) > chi2_limit(f))
+            .map(|(i, _)| i)
+            .collect();
+        self.report.outliers = outliers.len();
+        let (problem, wall_report) = if outliers.is_empty() {
+            (problem, first_walls)
+        } else {
+            let (mut problem, walls) = self.problem(&outliers);
+            match Solver::new(options).solve(&mut problem) {
+                Ok(second) => {
+                    self.report.iterations += second.iterations.len();
+                    self.report.solve_ms += second.total_time.as_secs_f64() * 1e3;
+                }
+                Err(error) => {
+                    return SolvedGlobal {
+                        job: self,
+                        outcome: Err(error),
+                    }
+                }
+            }
+            (problem, walls)
+        };
+        self.report.walls = wall_report;
+        self.report.final_cost = problem.cost();
+        let solution = problem.values();
+        let bent = self.edges.iter().any(|edge| {
+            let after = solution
+                .get(self.pose_key(edge.i))
+                .inverse()
+                .compose(solution.get(self.pose_key(edge.j)));
+            let r = edge.i_from_j.local(&after);
+            let sigmas = edge_sigmas(self.bf, edge.shared);
+            let chi2: f64 = (0..6).map(|c| (r[c] / sigmas[c]).powi(2)).sum();
+            chi2 > CHI2_6D_REJECT
+        });
+        if bent {
+            return SolvedGlobal {
+                job: self,
+                outcome: Ok(None),
             };
-            chi2_of(f, problem.values()) > limit
-        })
-        .map(|(i, _)| i)
-        .collect();
-    report.outliers = outliers.len();
-    let (problem, wall_report) = if outliers.is_empty() {
-        (problem, first_walls)
-    } else {
-        let (mut problem, walls) = build(values, &outliers);
-        let second = Solver::new(options).solve(&mut problem)?;
-        report.iterations += second.iterations.len();
-        report.solve_ms += second.total_time.as_secs_f64() * 1e3;
-        (problem, walls)
-    };
-    report.walls = wall_report;
-    report.final_cost = problem.cost();
-    let solution = problem.values();
-    // A relative pose the markers bent beyond what its points allow: the markers are wrong.
-    let bent = edges.iter().any(|edge| {
-        let before = map
-            .keyframe(edge.i)
-            .world_from_camera
-            .inverse()
-            .compose(&map.keyframe(edge.j).world_from_camera);
-        let after = solution
-            .get(pose_keys[&edge.i])
-            .inverse()
-            .compose(solution.get(pose_keys[&edge.j]));
-        let r = before.local(&after);
-        let information = edge_sigmas(rig, edge.shared);
-        let chi2: f64 = (0..6).map(|c| (r[c] / information[c]).powi(2)).sum();
-        chi2 > CHI2_6D_REJECT
-    });
-    if bent {
+        }
+        self.report.moved_max_m = self
+            .keyframes
+            .iter()
+            .map(|(_, key, before)| (solution.get(*key).translation - before.translation).norm())
+            .fold(0.0, f64::max);
+        let solution = solution.clone();
+        SolvedGlobal {
+            job: self,
+            outcome: Ok(Some((solution, outliers))),
+        }
+    }
+}
+
+/// Writes a solved whole-map optimisation into `map`, which may have changed since the job was
+/// made (keyframes added, local BA moved some): each keyframe and marker of the job moves by
+/// the job's correction of it (`after · before⁻¹`), so what changed meanwhile is kept.
+/// Keyframes added since (next to the held ones) and what they see stay where they are.
+pub fn apply_global(
+    map: &mut Map,
+    rig: &Rig,
+    solved: SolvedGlobal,
+) -> Result<GlobalReport, SolveError> {
+    let SolvedGlobal { job, outcome } = solved;
+    let Some((solution, outliers)) = outcome? else {
         tracing::debug!(
-            ?report,
+            report = ?job.report,
             "whole-map optimisation bent the keyframes; not applied"
         );
-        return Ok(report);
+        return Ok(job.report);
+    };
+    let mut corrections: HashMap<KeyFrameId, Se3> = HashMap::new();
+    for &(k, key, before) in &job.keyframes {
+        let correction = solution.get(key).compose(&before.inverse());
+        let keyframe = map.keyframe_mut(k);
+        if !keyframe.is_culled() {
+            keyframe.world_from_camera = correction.compose(&keyframe.world_from_camera);
+        }
+        corrections.insert(k, correction);
     }
-    report.moved_max_m = live
-        .iter()
-        .map(|k| {
-            (solution.get(pose_keys[k]).translation
-                - map.keyframe(*k).world_from_camera.translation)
-                .norm()
-        })
-        .fold(0.0, f64::max);
-    apply(map, rig, &live, &pose_keys, &marker_vars, solution, hold);
+    // Culled keyframes follow the keyframe that replaced them.
+    for i in 0..map.keyframes.len() {
+        if let Some((parent, parent_from_camera)) = map.keyframes[i].parent {
+            let pose = map
+                .keyframe(parent)
+                .world_from_camera
+                .compose(&parent_from_camera);
+            map.keyframes[i].world_from_camera = pose;
+        }
+    }
+    for var in &job.markers {
+        if let Some(marker) = map.markers.get_mut(&var.id) {
+            let correction = solution
+                .get(var.key)
+                .compose(&var.world_from_marker.inverse());
+            marker.world_from_marker = correction.compose(&marker.world_from_marker);
+        }
+    }
+    // Each point moves with the keyframe that first saw it, unless a keyframe that did not
+    // move sees it (a held one, or one added since).
+    let still = |k: &KeyFrameId| job.hold.contains(k) || !corrections.contains_key(k);
+    for index in 0..map.points.len() {
+        let point = &map.points[index];
+        if point.bad || point.observations.iter().any(|(k, _)| still(k)) {
+            continue;
+        }
+        let Some(correction) = corrections.get(&point.first_keyframe).or_else(|| {
+            point
+                .observations
+                .first()
+                .and_then(|(k, _)| corrections.get(k))
+        }) else {
+            continue;
+        };
+        let moved = correction.transform_point(&point.position);
+        map.points[index].position = moved;
+        let id = crate::map::MapPointId(index as u32);
+        map.update_normal_and_depth(id, rig);
+    }
     // Sightings the corrected map cannot explain are misread ids or bad corners: dropped, so
     // that they do not come back in every optimisation.
     for &index in &outliers {
-        let (id, k, i) = sighted[index];
+        let (id, k, i) = job.sighted[index];
         if let Some(marker) = map.markers.get_mut(&id) {
             marker.observations.retain(|&o| o != (k, i));
         }
     }
+    let mut report = job.report;
     report.applied = true;
     Ok(report)
+}
+
+fn chi2_limit(factor: &MarkerCornersFactor) -> f64 {
+    if factor.residual_dim() == 8 {
+        CHI2_8D
+    } else {
+        CHI2_12D
+    }
 }
 
 /// Consecutive live keyframes, and keyframes sharing [`ESSENTIAL_SHARED`] points, once each.
@@ -255,9 +405,14 @@ fn essential_edges(map: &Map, live: &[KeyFrameId]) -> Vec<Edge> {
     let mut add = |i: KeyFrameId, j: KeyFrameId, shared: usize, edges: &mut Vec<Edge>| {
         let pair = (i.min(j), i.max(j));
         if i != j && seen.insert(pair) {
+            let (a, b) = (
+                map.keyframe(pair.0).world_from_camera,
+                map.keyframe(pair.1).world_from_camera,
+            );
             edges.push(Edge {
                 i: pair.0,
                 j: pair.1,
+                i_from_j: a.inverse().compose(&b),
                 shared,
             });
         }
@@ -284,15 +439,15 @@ fn essential_edges(map: &Map, live: &[KeyFrameId]) -> Vec<Edge> {
 /// error at the typical range (one pixel of disparity) averaged over the shared points, and
 /// the angle it subtends there. Consecutive keyframes that share few points (a fast turn)
 /// still hold each other as if they shared a dozen.
-fn edge_sigmas(rig: &Rig, shared: usize) -> [f64; 6] {
-    let point_sigma = TYPICAL_RANGE_M * TYPICAL_RANGE_M / rig.bf;
+fn edge_sigmas(bf: f64, shared: usize) -> [f64; 6] {
+    let point_sigma = TYPICAL_RANGE_M * TYPICAL_RANGE_M / bf;
     let t = point_sigma / (shared.max(12) as f64).sqrt();
     let r = t / TYPICAL_RANGE_M;
     [t, t, t, r, r, r]
 }
 
-fn edge_information(rig: &Rig, shared: usize) -> Information {
-    Information::from_sigmas(&edge_sigmas(rig, shared)).expect("positive sigmas")
+fn edge_information(bf: f64, shared: usize) -> Information {
+    Information::from_sigmas(&edge_sigmas(bf, shared)).expect("positive sigmas")
 }
 
 /// Every sighting of every marker, from the live keyframes, as a corner factor (with the
@@ -330,59 +485,6 @@ fn chi2_of(factor: &MarkerCornersFactor, values: &Values) -> f64 {
     let mut r = vec![0.0; factor.residual_dim()];
     factor.evaluate(values, &mut r, None);
     r.iter().map(|v| v * v).sum()
-}
-
-/// Writes the solution: keyframes, markers, and each point moved with the keyframe that first
-/// saw it, unless a held keyframe sees it (those keyframes did not move, nor may what they see).
-fn apply(
-    map: &mut Map,
-    rig: &Rig,
-    live: &[KeyFrameId],
-    pose_keys: &HashMap<KeyFrameId, Key<Se3>>,
-    markers: &[MarkerVar],
-    solution: &Values,
-    hold: &HashSet<KeyFrameId>,
-) {
-    let mut corrections: HashMap<KeyFrameId, Se3> = HashMap::new();
-    for &k in live {
-        let after = *solution.get(pose_keys[&k]);
-        let before = map.keyframe(k).world_from_camera;
-        corrections.insert(k, after.compose(&before.inverse()));
-        map.keyframe_mut(k).world_from_camera = after;
-    }
-    // Culled keyframes follow the keyframe that replaced them.
-    for i in 0..map.keyframes.len() {
-        if let Some((parent, parent_from_camera)) = map.keyframes[i].parent {
-            let pose = map
-                .keyframe(parent)
-                .world_from_camera
-                .compose(&parent_from_camera);
-            map.keyframes[i].world_from_camera = pose;
-        }
-    }
-    for var in markers {
-        if let Some(marker) = map.markers.get_mut(&var.id) {
-            marker.world_from_marker = *solution.get(var.key);
-        }
-    }
-    for index in 0..map.points.len() {
-        let point = &map.points[index];
-        if point.bad || point.observations.iter().any(|(k, _)| hold.contains(k)) {
-            continue;
-        }
-        let Some(correction) = corrections.get(&point.first_keyframe).or_else(|| {
-            point
-                .observations
-                .first()
-                .and_then(|(k, _)| corrections.get(k))
-        }) else {
-            continue;
-        };
-        let moved = correction.transform_point(&point.position);
-        map.points[index].position = moved;
-        let id = crate::map::MapPointId(index as u32);
-        map.update_normal_and_depth(id, rig);
-    }
 }
 
 #[cfg(test)]
@@ -545,5 +647,39 @@ mod tests {
                 .collect();
             assert_eq!(kept, [0, 1]);
         }
+    }
+
+    #[test]
+    fn a_job_lands_on_the_map_as_it_became_meanwhile() {
+        let rig = rig();
+        let (mut map, _) = drifted_map();
+        let hold: HashSet<KeyFrameId> = [N - 2, N - 1].map(|k| KeyFrameId(k as u32)).into();
+        let mut at_once = map.clone();
+        optimise_map(&mut at_once, &rig, &[], &hold, 20).unwrap();
+
+        let job = GlobalJob::prepare(&map, &rig, &[], &hold, 20).unwrap();
+        // Meanwhile: local BA moves keyframe 20 by 2 cm, a keyframe is added next to the last.
+        let nudge = Vector3::new(0.02, 0.0, 0.0);
+        map.keyframes[20].world_from_camera.translation += nudge;
+        let last = map.keyframe(KeyFrameId(N as u32 - 1));
+        let (frame, pose) = (last.frame.clone(), last.world_from_camera);
+        let added = map.add_keyframe(frame, pose);
+        let report = apply_global(&mut map, &rig, job.solve()).unwrap();
+        assert!(report.applied, "{report:?}");
+
+        let pose_of = |m: &Map, k: usize| m.keyframe(KeyFrameId(k as u32)).world_from_camera;
+        // Untouched keyframes land where the optimisation at once put them.
+        assert!(pose_of(&map, 10).local(&pose_of(&at_once, 10)).norm() < 1e-9);
+        // The nudged one keeps its nudge, turned by its correction.
+        let shift = pose_of(&map, 20).translation - pose_of(&at_once, 20).translation;
+        assert!((shift.norm() - nudge.norm()).abs() < 1e-9, "{shift}");
+        assert!(
+            pose_of(&map, 20)
+                .rotation
+                .angle_to(&pose_of(&at_once, 20).rotation)
+                < 1e-9
+        );
+        // The keyframe added meanwhile stays where it was put.
+        assert!(map.keyframe(added).world_from_camera.local(&pose).norm() < 1e-12);
     }
 }

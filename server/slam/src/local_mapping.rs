@@ -10,7 +10,7 @@
 
 use crate::error::TrackError;
 use crate::frame::{Frame, Rig};
-use crate::global;
+use crate::global::{self, GlobalJob, SolvedGlobal};
 use crate::map::{KeyFrameId, Map, MapPointId};
 use crate::mapping::{self, LocalBaJob, SolvedLocalBa};
 use crate::markers;
@@ -24,6 +24,10 @@ use vsgraphs_optim::Se3;
 /// Levenberg–Marquardt iterations of a whole-map optimisation: it starts from the map as local
 /// BA left it, a few centimetres from its optimum at most.
 const WHOLE_MAP_ITERATIONS: usize = 20;
+/// Keyframes inserted while a whole-map optimisation is solved in the background; it lands
+/// before the next. Its solve takes up to a few hundred milliseconds on a building-sized map;
+/// a robot walking at a keyframe every few frames gives it about that.
+const WHOLE_MAP_LAG: usize = 1;
 
 /// How a map is mapped (see `TrackerConfig` for each field's default and reason).
 #[derive(Clone, Debug, PartialEq)]
@@ -110,22 +114,23 @@ pub enum MapReply {
     },
 }
 
-/// The thread that solves a map's local bundle adjustments in the background.
-struct BaWorker {
-    jobs: mpsc::Sender<LocalBaJob>,
-    results: mpsc::Receiver<SolvedLocalBa>,
+/// A thread that solves a map's optimisations of one kind in the background (named after the
+/// writer's thread and `suffix`), one job at a time.
+struct Worker<J, R> {
+    jobs: mpsc::Sender<J>,
+    results: mpsc::Receiver<R>,
 }
 
-impl BaWorker {
-    fn spawn() -> std::io::Result<Self> {
-        let (jobs, job_receiver) = mpsc::channel::<LocalBaJob>();
+impl<J: Send + 'static, R: Send + 'static> Worker<J, R> {
+    fn spawn(suffix: &str, solve: fn(J) -> R) -> std::io::Result<Self> {
+        let (jobs, job_receiver) = mpsc::channel::<J>();
         let (result_sender, results) = mpsc::channel();
         let name = std::thread::current()
             .name()
-            .map_or_else(|| "local-ba".to_owned(), |n| format!("{n}-ba"));
+            .map_or_else(|| format!("map-{suffix}"), |n| format!("{n}-{suffix}"));
         std::thread::Builder::new().name(name).spawn(move || {
             for job in job_receiver {
-                if result_sender.send(job.solve()).is_err() {
+                if result_sender.send(solve(job)).is_err() {
                     return;
                 }
             }
@@ -139,16 +144,19 @@ pub struct LocalMapper {
     config: MappingConfig,
     /// Points created recently, watched by culling until they prove themselves.
     recent_points: Vec<MapPointId>,
-    ba_worker: Option<BaWorker>,
+    ba_worker: Option<Worker<LocalBaJob, SolvedLocalBa>>,
     /// A bundle adjustment being solved in the background: its keyframe and the rig it was
     /// built with.
     pending_ba: Option<(KeyFrameId, Rig)>,
     /// The map's walls as its semantic layer last gave them, for local BA.
     walls: Vec<WallPrior>,
     /// Keyframes between whole-map optimisations (0: none), and keyframes inserted since the
-    /// last one.
+    /// last one started.
     whole_map_every: usize,
     since_whole_map: usize,
+    whole_map_worker: Option<Worker<GlobalJob, SolvedGlobal>>,
+    /// The rig a whole-map optimisation being solved in the background was built with.
+    pending_whole_map: Option<Rig>,
 }
 
 impl LocalMapper {
@@ -161,6 +169,8 @@ impl LocalMapper {
             walls: Vec::new(),
             whole_map_every: 0,
             since_whole_map: 0,
+            whole_map_worker: None,
+            pending_whole_map: None,
         }
     }
 
@@ -170,18 +180,22 @@ impl LocalMapper {
         self.walls = walls;
     }
 
-    /// Optimises the whole map's S-Graph ([`global::optimise_map`]) every `every` keyframes
-    /// (0: never), before the keyframe that completes the count is inserted.
+    /// Optimises the whole map's S-Graph ([`GlobalJob`]) every `every` keyframes (0: never),
+    /// in the background: it starts before the keyframe that completes the count is inserted
+    /// and lands [`WHOLE_MAP_LAG`] keyframes later.
     pub fn set_whole_map_every(&mut self, every: usize) {
         self.whole_map_every = every;
     }
 
-    /// The whole-map optimisation, when its turn has come: before a keyframe is inserted (the
-    /// last BA has landed), so that the tracker that waits for the keyframe sees the map after
-    /// it and the result never depends on timing. The newest keyframe and its local window hold
-    /// still: the frame being inserted was tracked against them.
-    fn optimise_whole_map(&mut self, map: &mut Map, rig: &Rig) -> Result<(), TrackError> {
-        if self.whole_map_every == 0 || self.since_whole_map < self.whole_map_every {
+    /// Starts the whole-map optimisation when its turn has come, before a keyframe is inserted
+    /// (the last local BA has landed). The newest keyframe and its local window hold still: the
+    /// frame being inserted was tracked against them, and the keyframes that follow it grow
+    /// from them, so the correction landing later needs no change there.
+    fn start_whole_map(&mut self, map: &Map, rig: &Rig) -> Result<(), TrackError> {
+        if self.whole_map_every == 0
+            || self.pending_whole_map.is_some()
+            || self.since_whole_map < self.whole_map_every
+        {
             return Ok(());
         }
         self.since_whole_map = 0;
@@ -194,18 +208,53 @@ impl LocalMapper {
         else {
             return Ok(());
         };
-        let started = std::time::Instant::now();
         let hold: HashSet<KeyFrameId> = std::iter::once(newest)
             .chain(mapping::local_window(map, newest))
             .collect();
-        let report = global::optimise_map(map, rig, &self.walls, &hold, WHOLE_MAP_ITERATIONS)
-            .map_err(TrackError::WholeMap)?;
-        tracing::debug!(
-            ms = started.elapsed().as_secs_f64() * 1e3,
-            ?report,
-            "whole map optimised"
-        );
+        let Some(job) = GlobalJob::prepare(map, rig, &self.walls, &hold, WHOLE_MAP_ITERATIONS)
+        else {
+            return Ok(());
+        };
+        if self.whole_map_worker.is_none() {
+            let worker =
+                Worker::spawn("map", GlobalJob::solve).map_err(|_| TrackError::WorkerStopped)?;
+            self.whole_map_worker = Some(worker);
+        }
+        let worker = self.whole_map_worker.as_ref().expect("spawned above");
+        if worker.jobs.send(job).is_err() {
+            self.whole_map_worker = None;
+            return Err(TrackError::WorkerStopped);
+        }
+        self.pending_whole_map = Some(rig.clone());
         Ok(())
+    }
+
+    /// Lands the whole-map optimisation in flight, waiting for it if need be, when `now` (at a
+    /// fixed count of keyframes after it started, or at a flush): the map never depends on how
+    /// fast the solve was. A failed solve leaves the map as it was.
+    fn land_whole_map(&mut self, map: &mut Map, now: bool) {
+        if !now {
+            return;
+        }
+        let Some(rig) = self.pending_whole_map.take() else {
+            return;
+        };
+        let landed = match self.whole_map_worker.as_ref().map(|w| w.results.recv()) {
+            Some(Ok(solved)) => {
+                global::apply_global(map, &rig, solved).map_err(TrackError::WholeMap)
+            }
+            _ => {
+                // The thread died (a panic in the solver): the next turn starts another.
+                self.whole_map_worker = None;
+                Err(TrackError::WorkerStopped)
+            }
+        };
+        match landed {
+            Ok(report) => tracing::debug!(?report, "whole map optimised"),
+            Err(error) => {
+                tracing::warn!(%error, "the whole-map optimisation failed; the map stays as it was")
+            }
+        }
     }
 
     pub fn config(&self) -> &MappingConfig {
@@ -220,6 +269,7 @@ impl LocalMapper {
             MapRequest::Flush(statistics) => {
                 statistics.apply(map);
                 let (_, local_ba) = self.finish_local_ba(map)?;
+                self.land_whole_map(map, true);
                 Ok(MapReply::Flushed { local_ba })
             }
         }
@@ -261,9 +311,11 @@ impl LocalMapper {
             None => world_from_camera,
         };
         self.since_whole_map += 1;
-        // A failed solve leaves the map as it was; the keyframe goes in all the same.
-        if let Err(error) = self.optimise_whole_map(map, &rig) {
-            tracing::warn!(%error, "the whole-map optimisation failed; the map stays as it was");
+        self.land_whole_map(map, self.since_whole_map >= WHOLE_MAP_LAG);
+        // A whole-map optimisation that cannot start leaves the map as it is; the keyframe goes
+        // in all the same.
+        if let Err(error) = self.start_whole_map(map, &rig) {
+            tracing::warn!(%error, "the whole-map optimisation did not start");
         }
         // The previous keyframe's BA has landed: its neighbours' redundancy is as settled as it
         // gets (ORB-SLAM culls right after local BA; here that is the same point in both BA
@@ -326,12 +378,14 @@ impl LocalMapper {
             return Ok(solve_time);
         }
         if self.ba_worker.is_none() {
-            self.ba_worker = Some(BaWorker::spawn().map_err(|_| TrackError::BaThreadStopped)?);
+            let worker =
+                Worker::spawn("ba", LocalBaJob::solve).map_err(|_| TrackError::WorkerStopped)?;
+            self.ba_worker = Some(worker);
         }
         let worker = self.ba_worker.as_ref().expect("spawned above");
         if worker.jobs.send(job).is_err() {
             self.ba_worker = None;
-            return Err(TrackError::BaThreadStopped);
+            return Err(TrackError::WorkerStopped);
         }
         self.pending_ba = Some((keyframe, rig));
         Ok(Duration::ZERO)
@@ -344,11 +398,11 @@ impl LocalMapper {
         let Some((keyframe, rig)) = self.pending_ba.take() else {
             return Ok((None, Duration::ZERO));
         };
-        let worker = self.ba_worker.as_ref().ok_or(TrackError::BaThreadStopped)?;
+        let worker = self.ba_worker.as_ref().ok_or(TrackError::WorkerStopped)?;
         let Ok(solved) = worker.results.recv() else {
             // The thread died (a panic in the solver): the next keyframe starts another.
             self.ba_worker = None;
-            return Err(TrackError::BaThreadStopped);
+            return Err(TrackError::WorkerStopped);
         };
         let solve_time = solved.solve_time;
         let before = map.keyframe(keyframe).world_from_camera;
