@@ -291,8 +291,19 @@ impl Building {
         serde_json::json!({"rooms": rooms, "doors": doors})
     }
 
+    /// The ground truth as a building model reads it. Its walls list every marker that hangs on
+    /// them, door markers too, as a map's model does: a corridor's end that only a door marker
+    /// shows is then known by that marker (and unseen when the walk never mapped it), while
+    /// `Wall::markers` keeps the dictionary's wall-marker groups.
     pub fn ground_truth_json(&self) -> String {
-        serde_json::to_string_pretty(self).expect("ground truth serialises")
+        let mut truth = serde_json::to_value(self).expect("ground truth serialises");
+        for marker in self.markers.iter().filter(|m| m.doorway.is_some()) {
+            truth["walls"][marker.wall]["markers"]
+                .as_array_mut()
+                .expect("every wall lists its markers")
+                .push(marker.id.into());
+        }
+        serde_json::to_string_pretty(&truth).expect("ground truth serialises")
     }
 }
 
