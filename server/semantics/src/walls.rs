@@ -38,8 +38,9 @@ pub struct Wall {
     pub plane: Plane,
     /// Its markers, by id.
     pub markers: Vec<MarkerId>,
-    /// The dictionary's space (index) whose wall markers these are; `None` for markers the
-    /// dictionary does not list (or without one).
+    /// The dictionary's space (index) whose wall markers these are, or for a wall that only
+    /// door markers show the space whose door list holds them; `None` for markers the
+    /// dictionary does not list (or without one), and door markers of two spaces.
     pub space: Option<usize>,
 }
 
@@ -106,16 +107,28 @@ pub fn walls_of(
             None => walls.push(Gathered::new(id, under, at, space)),
         }
     }
-    // Door markers hang on walls too, beside their frames: on a wall they agree with, of
-    // whichever space, or on one of their own (a corridor's end that no wall marker shows).
+    // Door markers hang on walls too, beside their frames: on a wall they agree with of a space
+    // whose door list holds them (the rooms along a corridor have their walls in one plane, so
+    // agreeing is not enough), of no known space, or on one of their own (a corridor's end
+    // that no wall marker shows).
     for (id, pose) in door_markers {
+        let spaces = dictionary.map_or_else(Vec::new, |d| d.spaces_of_door(id));
+        let may_join = |space: Option<usize>| {
+            spaces.is_empty() || space.is_none_or(|space| spaces.contains(&space))
+        };
         let (under, at) = plane_under(id, pose);
         let joins = walls
             .iter()
-            .position(|w| agree(&w.plane(), &under.plane, &at, association));
+            .position(|w| may_join(w.space) && agree(&w.plane(), &under.plane, &at, association));
+        // A wall of its own belongs to the space whose door list holds the marker, when one
+        // does: two corridors' ends in one plane metres apart stay two walls.
+        let own = match spaces.as_slice() {
+            &[space] => Some(space),
+            _ => None,
+        };
         match joins {
             Some(w) => walls[w].members.push((id, under, at)),
-            None => walls.push(Gathered::new(id, under, at, None)),
+            None => walls.push(Gathered::new(id, under, at, own)),
         }
     }
     // Walls that came out as two (the first markers of one were far apart in the map's noise)
@@ -372,7 +385,8 @@ mod tests {
         ];
         let walls = gathered(&markers, &[], Some(&dictionary));
         assert_eq!(walls.len(), 2);
-        // The door marker between them hangs on the first wall it agrees with.
+        // The door marker between them hangs on the first wall it agrees with of the spaces
+        // whose door lists hold it (both here).
         assert_eq!(
             (walls[0].markers.as_slice(), walls[0].space),
             (&[1, 9][..], Some(0))
@@ -380,6 +394,41 @@ mod tests {
         assert_eq!(
             (walls[1].markers.as_slice(), walls[1].space),
             (&[5][..], Some(1))
+        );
+        // Listed by B alone, it hangs on B's wall, though A's agrees with it and comes first.
+        let b_only = Dictionary::parse(
+            r#"{"rooms":[
+                {"name":"A","markers":[[1,2,3,4]],"doorMarkers":[]},
+                {"name":"B","markers":[[5,6,7,8]],"doorMarkers":[9]}],
+              "doors":[{"name":"door","marker":9}]}"#,
+        )
+        .unwrap();
+        let walls = gathered(&markers, &[], Some(&b_only));
+        assert_eq!(walls.len(), 2);
+        assert_eq!(walls[0].markers, [1]);
+        assert_eq!(walls[1].markers, [5, 9]);
+        // Listed by a space with no wall there (a corridor's end): a wall of its own, of that
+        // space; a door marker of another corridor's end in the same plane makes another.
+        let c_only = Dictionary::parse(
+            r#"{"rooms":[
+                {"name":"A","markers":[[1,2,3,4]],"doorMarkers":[]},
+                {"name":"B","markers":[[5,6,7,8]],"doorMarkers":[]},
+                {"name":"C","markers":[[10,11]],"doorMarkers":[9]},
+                {"name":"D","markers":[[12,13]],"doorMarkers":[14]}],
+              "doors":[{"name":"door","marker":9},{"name":"other","marker":14}]}"#,
+        )
+        .unwrap();
+        let mut ends = markers.to_vec();
+        ends.push((14, marker([7.0, 0.0, 1.5], [0.0, 1.0, 0.0])));
+        let walls = gathered(&ends, &[], Some(&c_only));
+        assert_eq!(walls.len(), 4);
+        assert_eq!(
+            (walls[2].markers.as_slice(), walls[2].space),
+            (&[9][..], Some(2))
+        );
+        assert_eq!(
+            (walls[3].markers.as_slice(), walls[3].space),
+            (&[14][..], Some(3))
         );
         // Without the dictionary they are one wall.
         let one = gathered(&markers, &[], None);
