@@ -11,10 +11,17 @@ use vsgraphs_proto::CameraModel;
 
 /// Largest image side accepted from the network, in pixels.
 pub const MAX_SIDE: u32 = 8192;
+/// Most pixels an image accepted from the network may have: the largest RGB-D colour sensors
+/// give 4096 × 3072. A frame's images are allocated at the camera's size before their bytes
+/// are read (RVL codes an empty depth image in a few bytes), so this bounds what one frame
+/// can make the server allocate: 25 MB of depth.
+pub const MAX_PIXELS: u64 = 4096 * 3072;
 
 #[derive(Debug, Error, PartialEq)]
 pub enum CameraError {
-    #[error("image size {0}x{1} is outside 1..={MAX_SIDE} pixels per side")]
+    #[error(
+        "image size {0}x{1} is outside 1..={MAX_SIDE} pixels per side or above {MAX_PIXELS} pixels"
+    )]
     BadSize(u32, u32),
     #[error("focal lengths fx={0}, fy={1} must be finite and positive")]
     BadFocal(f64, f64),
@@ -98,7 +105,10 @@ impl PinholeCamera {
         [fx, fy, cx, cy]: [f64; 4],
         distortion: Vec<f64>,
     ) -> Result<Self, CameraError> {
-        if !(1..=MAX_SIDE).contains(&width) || !(1..=MAX_SIDE).contains(&height) {
+        if !(1..=MAX_SIDE).contains(&width)
+            || !(1..=MAX_SIDE).contains(&height)
+            || u64::from(width) * u64::from(height) > MAX_PIXELS
+        {
             return Err(CameraError::BadSize(width, height));
         }
         if !(fx.is_finite() && fy.is_finite() && fx > 0.0 && fy > 0.0) {
@@ -194,6 +204,12 @@ mod tests {
             PinholeCamera::new(0, 480, ok, vec![]),
             Err(CameraError::BadSize(0, 480))
         );
+        // Each side allowed, but together more than a frame may make the server allocate.
+        assert_eq!(
+            PinholeCamera::new(8192, 8192, [500.0, 500.0, 4096.0, 4096.0], vec![]),
+            Err(CameraError::BadSize(8192, 8192))
+        );
+        assert!(PinholeCamera::new(4096, 3072, [500.0, 500.0, 2048.0, 1536.0], vec![]).is_ok());
         assert!(matches!(
             PinholeCamera::new(640, 480, ok, vec![0.1, 0.2, 0.0]),
             Err(CameraError::BadDistortion(_))
