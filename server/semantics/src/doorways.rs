@@ -3,18 +3,20 @@
 //! typically half a metre. The opening itself shows in the map: a wall is opaque, so a point
 //! beyond the wall's plane that a camera on the near side saw was seen *through* an opening, and
 //! the ray between them crosses the plane inside it. Those crossings fill the opening; the wall's
-//! own points bound it at the sides: each side lies between the outermost crossings and the
-//! nearest wall points, so it is put halfway between the two. A doorway's place is the middle of
+//! own points bound it at the sides: each side lies where the two kinds of evidence part, the
+//! place that leaves fewest of either on the wrong side (a few strays of either kind, however far
+//! out, do not move it), halfway across the gap between them. A doorway's place is the middle of
 //! its threshold, on the floor: where a robot passes through, and what a camera at a robot's
 //! height sees (the floor ahead of it, seldom the lintel above).
 //!
 //! A door has a marker on each face of its wall; both find the same opening, and the doorway is
-//! one. A door marker whose opening the map does not show (a closed door, a door not yet looked
-//! through) gives no doorway: its place is not known well enough to be one.
+//! one, each of its sides taken from the face that bounds it most tightly. A door marker whose
+//! opening the map does not show (a closed door, a door not yet looked through), or that hangs
+//! on no wall, gives no doorway: its place is not known well enough to be one.
 
 use crate::dictionary::{Dictionary, MarkerId, MarkerRole};
 use crate::wall_points::MapPoint;
-use crate::walls::{marker_plane, Wall};
+use crate::walls::Wall;
 use nalgebra::{Matrix3, Rotation3, SymmetricEigen, Unit, UnitQuaternion, Vector3};
 use vsgraphs_optim::{Plane, Se3};
 
@@ -114,11 +116,33 @@ pub fn up_direction(walls: &[Wall], markers: &[(MarkerId, Se3)]) -> Option<Unit<
     Some(if up.dot(&marker_up) < 0.0 { -up } else { up })
 }
 
-/// The opening in a wall near a door marker: the middle of its threshold, and its width.
+/// The opening in a wall near a door marker: the two ends of its threshold.
 #[derive(Clone, Copy, Debug, PartialEq)]
 struct Opening {
-    centre: Vector3<f64>,
-    width_m: f64,
+    sides: [Side; 2],
+}
+
+/// One end of a threshold: on the floor at the wall's plane, with how far apart the evidence
+/// that bounds it lies (the gap between the last crossing and the first wall point beyond it;
+/// infinite with no wall point beyond).
+#[derive(Clone, Copy, Debug, PartialEq)]
+struct Side {
+    at: Vector3<f64>,
+    spread_m: f64,
+}
+
+impl Opening {
+    fn centre(&self) -> Vector3<f64> {
+        0.5 * (self.sides[0].at + self.sides[1].at)
+    }
+}
+
+/// What one door marker shows of its opening.
+struct Seen {
+    id: MarkerId,
+    wall: usize,
+    plane: Plane,
+    opening: Opening,
 }
 
 /// The doorways that the map's door markers (by `dictionary`) label and whose openings it shows.
@@ -135,52 +159,91 @@ pub fn doorways_of(
     };
     let mut ordered: Vec<&(MarkerId, Se3)> = markers.iter().collect();
     ordered.sort_by_key(|(id, _)| *id);
-    let mut doorways: Vec<Doorway> = Vec::new();
+    // The door markers whose openings the map shows, grouped by opening.
+    let mut groups: Vec<Vec<Seen>> = Vec::new();
     for &(id, ref pose) in ordered {
-        let MarkerRole::Door { door } = dictionary.role(id) else {
+        if !matches!(dictionary.role(id), MarkerRole::Door { .. }) {
+            continue;
+        }
+        // A door marker on no wall is not placed well enough to look for its opening.
+        let Some(wall) = walls.iter().position(|w| w.markers.contains(&id)) else {
             continue;
         };
-        let wall = walls.iter().position(|w| w.markers.contains(&id));
-        let plane = wall.map_or_else(|| marker_plane(pose), |w| walls[w].plane);
+        let plane = walls[wall].plane;
         let Some(opening) = opening_near(&pose.translation, &plane, &up, points, cameras, settings)
         else {
             tracing::trace!(id, "a door marker's opening is not in the map");
             continue;
         };
-        let spaces = dictionary.spaces_of_door(id);
-        let same = doorways.iter().position(|d| {
-            (d.world_from_doorway.translation - opening.centre).norm() <= settings.same_opening_m
-        });
+        let seen = Seen {
+            id,
+            wall,
+            plane,
+            opening,
+        };
+        let same = groups
+            .iter_mut()
+            .find(|g| (g[0].opening.centre() - opening.centre()).norm() <= settings.same_opening_m);
         match same {
-            Some(d) => {
-                let doorway = &mut doorways[d];
-                let n = doorway.markers.len() as f64;
-                let t = &mut doorway.world_from_doorway.translation;
-                *t = (*t * n + opening.centre) / (n + 1.0);
-                doorway.width_m = (doorway.width_m * n + opening.width_m) / (n + 1.0);
-                doorway.markers.push(id);
-                doorway.walls.extend(wall);
-                doorway.door = doorway.door.or(door);
-                for s in spaces {
-                    if !doorway.spaces.contains(&s) {
-                        doorway.spaces.push(s);
-                    }
-                }
-            }
-            None => doorways.push(Doorway {
-                markers: vec![id],
-                walls: wall.into_iter().collect(),
-                world_from_doorway: Se3::new(
-                    upright_facing(&-plane.normal.into_inner(), &up),
-                    opening.centre,
-                ),
-                width_m: opening.width_m,
-                door,
-                spaces,
-            }),
+            Some(group) => group.push(seen),
+            None => groups.push(vec![seen]),
         }
     }
-    doorways
+    groups
+        .iter()
+        .map(|group| doorway_of(group, &up, dictionary))
+        .collect()
+}
+
+/// One doorway from the openings its door markers show. The door markers on a wall's two faces
+/// see the opening from either side, and each side of it better from one face than the other
+/// (the texture beside a frame can be bare on one face, or hidden by the marker): each side is
+/// the one whose evidence is tightest, and the doorway lies midway between the two, across the
+/// wall where the faces' openings lie on average.
+fn doorway_of(group: &[Seen], up: &Unit<Vector3<f64>>, dictionary: &Dictionary) -> Doorway {
+    let first = &group[0];
+    let along = (first.opening.sides[1].at - first.opening.sides[0].at).normalize();
+    let tightest = |low: bool| {
+        group
+            .iter()
+            .map(|s| {
+                let [a, b] = s.opening.sides;
+                if ((b.at - a.at).dot(&along) >= 0.0) == low {
+                    a
+                } else {
+                    b
+                }
+            })
+            .min_by(|a, b| a.spread_m.total_cmp(&b.spread_m))
+            .expect("a group has an opening")
+    };
+    let (low, high) = (tightest(true), tightest(false));
+    let mean = group
+        .iter()
+        .map(|s| s.opening.centre())
+        .sum::<Vector3<f64>>()
+        / group.len() as f64;
+    let centre = mean + along * (0.5 * (low.at + high.at) - mean).dot(&along);
+    let mut spaces: Vec<usize> = Vec::new();
+    for s in group.iter().flat_map(|s| dictionary.spaces_of_door(s.id)) {
+        if !spaces.contains(&s) {
+            spaces.push(s);
+        }
+    }
+    Doorway {
+        markers: group.iter().map(|s| s.id).collect(),
+        walls: group.iter().map(|s| s.wall).collect(),
+        world_from_doorway: Se3::new(
+            upright_facing(&-first.plane.normal.into_inner(), up),
+            centre,
+        ),
+        width_m: (high.at - low.at).dot(&along),
+        door: group.iter().find_map(|s| match dictionary.role(s.id) {
+            MarkerRole::Door { door } => door,
+            _ => None,
+        }),
+        spaces,
+    }
 }
 
 /// The rotation of a frame whose z axis is `z` made horizontal and whose y axis is `up`.
@@ -266,26 +329,24 @@ fn opening_near(
     let alongs: Vec<f64> = through.iter().map(|c| c[0]).collect();
     let middle_along = alongs[alongs.len() / 2];
 
-    // Sides: the bounding points level with the crossings, nearest the opening on each side.
+    // Sides: between the crossings and the bounding points level with them, on each side.
     let level: Vec<f64> = bounding
         .iter()
         .filter(|b| (low..=high).contains(&b[1]))
         .map(|b| b[0])
         .collect();
-    let left = edge(
-        level
-            .iter()
-            .copied()
-            .filter(|&a| a < middle_along)
-            .map(|a| -a),
-        alongs.iter().map(|&a| -a),
-    )
-    .map(|e| -e)?;
-    let right = edge(
-        level.iter().copied().filter(|&a| a > middle_along),
-        alongs.iter().copied(),
-    )?;
-    let width = right - left;
+    let side_of = |sign: f64| {
+        let outward = |values: &[f64]| -> Vec<f64> {
+            values
+                .iter()
+                .map(|&a| sign * a)
+                .filter(|&a| a > sign * middle_along)
+                .collect()
+        };
+        edge(&outward(&alongs), &outward(&level)).map(|(at, spread_m)| (sign * at, spread_m))
+    };
+    let (left, right) = (side_of(-1.0)?, side_of(1.0)?);
+    let width = right.0 - left.0;
     // The threshold: the floor at the wall, below the lowest crossing (a camera at a robot's
     // height seldom sees a lintel, but it sees the floor ahead of it).
     let lowest = heights[1.min(heights.len() - 1)];
@@ -296,9 +357,12 @@ fn opening_near(
     if !(settings.min_width_m..=settings.max_width_m).contains(&width) {
         return None;
     }
+    let side = |(at, spread_m): (f64, f64)| Side {
+        at: origin + along * at + vertical.into_inner() * floor,
+        spread_m,
+    };
     Some(Opening {
-        centre: origin + along * (0.5 * (left + right)) + vertical.into_inner() * floor,
-        width_m: width,
+        sides: [side(left), side(right)],
     })
 }
 
@@ -334,26 +398,44 @@ fn floor_level(
     Some(level[level.len() / 2])
 }
 
-/// An opening's edge on the side where coordinates grow: halfway between the second-furthest
-/// crossing (`inside`) and the second-nearest bounding point beyond it (`bounds`); one stray
-/// point of either kind moves it not at all. Without a bounding point, the crossings' extreme.
-fn edge(bounds: impl Iterator<Item = f64>, inside: impl Iterator<Item = f64>) -> Option<f64> {
-    let inside = second(inside, |a, b| b.total_cmp(a))?;
-    let beyond: Vec<f64> = bounds.filter(|&b| b >= inside).collect();
-    Some(match second(beyond.into_iter(), f64::total_cmp) {
-        Some(bound) => 0.5 * (inside + bound),
-        None => inside,
+/// An opening's edge on the side where coordinates grow, from the crossings on that side
+/// (`inside`) and the wall points (`bounds`): where the fewest of either lie on the wrong side
+/// of it, each kind counted as a share of its own number (a wall holds far more points than
+/// an opening crossings, and neither should outvote the other). A few stray points of either
+/// kind, however far out, move it not at all. It lies halfway across the gap between the
+/// evidence on either side; returned with that gap's width (infinite with no wall point
+/// beyond). `None` without a crossing.
+fn edge(inside: &[f64], bounds: &[f64]) -> Option<(f64, f64)> {
+    if inside.is_empty() {
+        return None;
+    }
+    let mut all: Vec<(f64, bool)> = inside
+        .iter()
+        .map(|&a| (a, false))
+        .chain(bounds.iter().map(|&b| (b, true)))
+        .collect();
+    all.sort_by(|a, b| a.0.total_cmp(&b.0));
+    // Misplaced points, each crossing weighing `bounds.len()` and each wall point
+    // `inside.len()`: exact in integers. An edge below everything leaves every crossing out.
+    let (weight_inside, weight_bound) = (bounds.len().max(1), inside.len());
+    let mut wrong = inside.len() * weight_inside;
+    let mut best: Option<(usize, usize)> = None;
+    for (k, &(_, is_bound)) in all.iter().enumerate() {
+        if is_bound {
+            wrong += weight_bound;
+        } else {
+            wrong -= weight_inside;
+        }
+        if best.is_none_or(|(w, _)| wrong < w) {
+            best = Some((wrong, k));
+        }
+    }
+    let (_, k) = best?;
+    let last_in = all[k].0;
+    Some(match all.get(k + 1) {
+        Some(&(first_out, _)) => (0.5 * (last_in + first_out), first_out - last_in),
+        None => (last_in, f64::INFINITY),
     })
-}
-
-/// The second item in `order` (the only one if there is one).
-fn second(
-    items: impl Iterator<Item = f64>,
-    order: fn(&f64, &f64) -> std::cmp::Ordering,
-) -> Option<f64> {
-    let mut items: Vec<f64> = items.collect();
-    items.sort_by(order);
-    items.get(1).or(items.first()).copied()
 }
 
 #[cfg(test)]
@@ -512,6 +594,76 @@ mod tests {
         let z = d.world_from_doorway.rotation * Vector3::z();
         let y = d.world_from_doorway.rotation * Vector3::y();
         assert!((z.x.abs() - 1.0).abs() < 1e-9 && (y - Vector3::z()).norm() < 1e-9);
+    }
+
+    #[test]
+    fn stray_points_do_not_move_an_opening_s_sides() {
+        let (mut markers, walls) = setting();
+        // Marker 10 alone: its face's evidence is all there is.
+        markers.retain(|(id, _)| *id != 11);
+        let Scene {
+            mut points,
+            cameras,
+        } = scene(true);
+        let mut stray = |position: Vector3<f64>, toward: Vector3<f64>| {
+            points.push(MapPoint {
+                position,
+                toward_cameras: toward.normalize(),
+                cameras: vec![0],
+            })
+        };
+        // Points of room B matched wrongly, as if seen from room A through the wall beside the
+        // opening: their rays cross the plane 15, 30 and 45 cm past its side.
+        for y in [2.05, 2.2, 2.35] {
+            let beyond = Vector3::new(-3.0, 0.5 + (y - 0.5) / 0.4, 1.0);
+            stray(beyond, cameras[0] - beyond);
+        }
+        // Points on the wall's plane inside the opening (depth noise of what lies beyond).
+        for (y, z) in [(1.3, 1.0), (1.5, 1.1), (1.6, 0.9)] {
+            stray(Vector3::new(0.0, y, z), Vector3::x());
+        }
+        let doorways = doorways_of(
+            &markers,
+            &walls,
+            &points,
+            &cameras,
+            &dictionary(),
+            &Openings::default(),
+        );
+        assert_eq!(doorways.len(), 1, "{doorways:?}");
+        let at = doorways[0].world_from_doorway.translation;
+        assert!((at - Vector3::new(0.0, 1.45, 0.0)).norm() < 0.05, "{at}");
+        assert!(
+            (doorways[0].width_m - 0.9).abs() < 0.1,
+            "{}",
+            doorways[0].width_m
+        );
+    }
+
+    #[test]
+    fn each_side_of_a_doorway_comes_from_the_face_that_bounds_it_best() {
+        // The opening of `setting` from y = 1.0 to 1.9. From face A the wall beside its far side
+        // is bare for 40 cm; face B sees that side closely, and its near side a little worse.
+        let side = |y: f64, spread_m: f64| Side {
+            at: Vector3::new(0.0, y, 0.0),
+            spread_m,
+        };
+        let (_, walls) = setting();
+        let seen = |id, wall: usize, sides| Seen {
+            id,
+            wall,
+            plane: walls[wall].plane,
+            opening: Opening { sides },
+        };
+        let group = [
+            seen(10, 0, [side(1.0, 0.05), side(2.1, 0.45)]),
+            seen(11, 1, [side(1.9, 0.05), side(0.98, 0.10)]),
+        ];
+        let doorway = doorway_of(&group, &Vector3::z_axis(), &dictionary());
+        let at = doorway.world_from_doorway.translation;
+        assert!((at - Vector3::new(0.0, 1.45, 0.0)).norm() < 1e-9, "{at}");
+        assert!((doorway.width_m - 0.9).abs() < 1e-9, "{}", doorway.width_m);
+        assert_eq!((doorway.markers, doorway.walls), (vec![10, 11], vec![0, 1]));
     }
 
     #[test]

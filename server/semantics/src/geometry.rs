@@ -20,8 +20,9 @@ use vsgraphs_optim::factors::room::{corridor_centre, room_centre};
 
 /// A facing wall is straight across from a marker when the map has this many points on it
 /// (within [`ACROSS_BAND_M`] of its plane, seen from its side) within [`ACROSS_WINDOW_M`] of
-/// the marker along the wall and [`ACROSS_HEIGHT_M`] in height: a dozen points make a surface, as for a doorway's floor. A wall
-/// the map has that many points of but none across is not there (an opening, a landing).
+/// the marker along the wall and [`ACROSS_HEIGHT_M`] in height: a dozen points make a surface,
+/// as for a doorway's floor. A wall the map has that many points of but none across is not
+/// there (an opening, a landing).
 const ACROSS_POINTS: usize = 12;
 /// A built wall's relief and the map points' spread, metres (as walls in local BA).
 const ACROSS_BAND_M: f64 = 0.05;

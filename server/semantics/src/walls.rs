@@ -110,7 +110,7 @@ pub fn walls_of(
     // Door markers hang on walls too, beside their frames: on a wall they agree with of a space
     // whose door list holds them (the rooms along a corridor have their walls in one plane, so
     // agreeing is not enough), of no known space, or on one of their own (a corridor's end
-    // that no wall marker shows).
+    // that no wall marker shows) where the map points around them make its plane.
     for (id, pose) in door_markers {
         let spaces = dictionary.map_or_else(Vec::new, |d| d.spaces_of_door(id));
         let may_join = |space: Option<usize>| {
@@ -128,6 +128,11 @@ pub fn walls_of(
         };
         match joins {
             Some(w) => walls[w].members.push((id, under, at)),
+            // Its own pose alone is too unsure to make a wall: a marker seen small can be
+            // mapped turned tens of degrees, and a wall of it would be a wall nowhere.
+            None if !under.fitted => {
+                tracing::debug!(id, "a door marker on no wall that its points confirm");
+            }
             None => walls.push(Gathered::new(id, under, at, own)),
         }
     }
@@ -420,7 +425,11 @@ mod tests {
         .unwrap();
         let mut ends = markers.to_vec();
         ends.push((14, marker([7.0, 0.0, 1.5], [0.0, 1.0, 0.0])));
-        let walls = gathered(&ends, &[], Some(&c_only));
+        let points: Vec<MapPoint> = [[3.0, 0.0, 1.5], [7.0, 0.0, 1.5]]
+            .into_iter()
+            .flat_map(|at| texture(at, [0.0, 1.0, 0.0]))
+            .collect();
+        let walls = gathered(&ends, &points, Some(&c_only));
         assert_eq!(walls.len(), 4);
         assert_eq!(
             (walls[2].markers.as_slice(), walls[2].space),
@@ -434,12 +443,37 @@ mod tests {
         let one = gathered(&markers, &[], None);
         assert_eq!(one.len(), 1);
         assert_eq!(one[0].markers, [1, 5, 9]);
-        // A door marker with no wall to join makes its own, of no known space.
+        // A door marker with no wall to join makes its own, of no known space, on the plane
+        // its points make.
         let alone = [(9, marker([3.0, 6.0, 1.5], [0.0, -1.0, 0.0]))];
-        let walls = gathered(&alone, &[], Some(&dictionary));
+        let points = texture([3.0, 6.0, 1.5], [0.0, -1.0, 0.0]);
+        let walls = gathered(&alone, &points, Some(&dictionary));
         assert_eq!(
             (walls[0].markers.as_slice(), walls[0].space),
             (&[9][..], None)
         );
+        // Mapped turned away from that wall, its points no longer confirm it: no wall at all.
+        let turned = [(9, marker([3.0, 6.0, 1.5], [0.94, -0.34, 0.0]))];
+        assert!(gathered(&turned, &points, Some(&dictionary)).is_empty());
+        assert!(gathered(&alone, &[], Some(&dictionary)).is_empty());
+    }
+
+    /// Map points textured every 10 cm over a 1.2 m square of the wall through `at` that faces
+    /// along `facing` (horizontal), seen from that side.
+    fn texture(at: [f64; 3], facing: [f64; 3]) -> Vec<MapPoint> {
+        let normal = Vector3::from(facing).normalize();
+        let across = Vector3::z().cross(&normal);
+        let mut points = Vec::new();
+        for i in 0..12 {
+            for j in 0..12 {
+                let (u, v) = (0.1 * i as f64 - 0.55, 0.1 * j as f64 - 0.55);
+                points.push(MapPoint {
+                    position: Vector3::from(at) + across * u + Vector3::z() * v,
+                    toward_cameras: normal,
+                    cameras: Vec::new(),
+                });
+            }
+        }
+        points
     }
 }
