@@ -124,8 +124,12 @@ fn angle_between(a: &Vector3<f64>, b: &Vector3<f64>) -> f64 {
 }
 
 fn z_axis(pose: &Pose) -> Vector3<f64> {
+    rotation(pose) * Vector3::z()
+}
+
+fn rotation(pose: &Pose) -> UnitQuaternion<f64> {
     let [x, y, z, w] = pose.quaternion_xyzw;
-    UnitQuaternion::from_quaternion(Quaternion::new(w, x, y, z)) * Vector3::z()
+    UnitQuaternion::from_quaternion(Quaternion::new(w, x, y, z))
 }
 
 /// Scores `estimate` against `reference`.
@@ -248,17 +252,27 @@ fn score_in(
     let mut candidates = Vec::new();
     for (g, gt) in reference.doorways.iter().enumerate() {
         for (e, est) in estimate.doorways.iter().enumerate() {
-            let distance = (rigid.point(position(&est.world_from_doorway))
-                - position(&gt.world_from_doorway))
-            .norm();
+            let offset =
+                rigid.point(position(&est.world_from_doorway)) - position(&gt.world_from_doorway);
+            let distance = offset.norm();
             if distance <= gates.doorway_m {
+                // The offset in the reference doorway's frame: along the wall, up, across.
+                let [along, up, across] = (rotation(&gt.world_from_doorway).inverse() * offset)
+                    .abs()
+                    .into();
                 // The axis across the opening, whichever way it points.
                 let axis = rigid.rotation * z_axis(&est.world_from_doorway);
                 let reference_axis = z_axis(&gt.world_from_doorway);
                 let angle = angle_between(&axis, &reference_axis)
                     .min(angle_between(&-axis, &reference_axis))
                     .to_degrees();
-                let errors = vec![("position_m", distance), ("axis_deg", angle)];
+                let errors = vec![
+                    ("position_m", distance),
+                    ("along_m", along),
+                    ("height_m", up),
+                    ("across_m", across),
+                    ("axis_deg", angle),
+                ];
                 candidates.push((shared(&gt.markers, &est.markers), distance, g, e, errors));
             }
         }

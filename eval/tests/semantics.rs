@@ -162,6 +162,10 @@ fn each_mistake_costs_what_it_should() {
     let doorways = kind(&report, "doorways");
     assert_eq!(doorways.matched, 5);
     assert!((doorways.errors["position_m"].max - 0.1).abs() < 1e-9);
+    // All of it along the wall, none up or across.
+    assert!((doorways.errors["along_m"].max - 0.1).abs() < 1e-9);
+    assert!(doorways.errors["height_m"].max < 1e-9);
+    assert!(doorways.errors["across_m"].max < 1e-9);
     assert!(doorways.errors["axis_deg"].max < 1e-6);
 }
 
