@@ -12,6 +12,8 @@ pub const ALL_FRAMES: &str = "vsgraphs/robots/*/frames";
 pub const ALL_ALIVE: &str = "vsgraphs/robots/*/alive";
 /// Longest robot id accepted, in bytes.
 pub const MAX_ROBOT_ID_LEN: usize = 64;
+/// Longest session id a frame may carry, in bytes (a UUID has 36 characters).
+pub const MAX_SESSION_ID_LEN: usize = 64;
 
 const ROBOTS: &str = "vsgraphs/robots/";
 

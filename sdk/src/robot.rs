@@ -16,6 +16,8 @@ pub enum RobotError {
     RobotId(#[from] keys::RobotIdError),
     #[error(transparent)]
     Config(#[from] ZenohConfigError),
+    #[error("session id is {0} bytes long; at most {max} are allowed", max = keys::MAX_SESSION_ID_LEN)]
+    SessionIdTooLong(usize),
     #[error("zenoh: {0}")]
     Zenoh(zenoh::Error),
 }
@@ -77,6 +79,13 @@ impl Robot {
     /// Opens a zenoh session, declares the frame publisher and the liveliness token.
     pub async fn connect(config: RobotConfig) -> Result<Self, RobotError> {
         keys::validate_robot_id(&config.robot_id)?;
+        if let Some(id) = config
+            .session_id
+            .as_ref()
+            .filter(|id| id.len() > keys::MAX_SESSION_ID_LEN)
+        {
+            return Err(RobotError::SessionIdTooLong(id.len()));
+        }
         let session = zenoh::open(config.zenoh.to_config()?).await?;
         let congestion = match config.delivery {
             Delivery::Live => CongestionControl::Drop,

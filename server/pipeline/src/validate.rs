@@ -54,14 +54,23 @@ pub struct Rejection {
     pub sequence: Option<u64>,
 }
 
+/// A rejection's message is kept per robot and served with it: it is cut to this many
+/// characters, whatever a frame's strings make it.
+pub const MAX_MESSAGE_CHARS: usize = 200;
+
 pub(crate) fn reject(
     reason: Reason,
     message: impl Into<String>,
     sequence: Option<u64>,
 ) -> Rejection {
+    let mut message = message.into();
+    if let Some((cut, _)) = message.char_indices().nth(MAX_MESSAGE_CHARS) {
+        message.truncate(cut);
+        message.push('…');
+    }
     Rejection {
         reason,
-        message: message.into(),
+        message,
         sequence,
     }
 }
@@ -105,6 +114,17 @@ pub fn parse(robot_id: &str, bytes: &[u8], max_frame_bytes: usize) -> Result<Rgb
         return Err(reject(
             Reason::MissingField,
             "session_id is empty",
+            sequence,
+        ));
+    }
+    if frame.session_id.len() > keys::MAX_SESSION_ID_LEN {
+        return Err(reject(
+            Reason::Malformed,
+            format!(
+                "session_id of {} bytes exceeds the {} allowed",
+                frame.session_id.len(),
+                keys::MAX_SESSION_ID_LEN
+            ),
             sequence,
         ));
     }
@@ -174,4 +194,49 @@ pub(crate) fn decode_rejection(
         _ => fallback,
     };
     reject(reason, error.to_string(), sequence)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use vsgraphs_proto::{CameraModel, ColourImage, DepthImage};
+
+    fn frame(robot_id: &str, session_id: &str) -> Vec<u8> {
+        RgbdFrame {
+            robot_id: robot_id.into(),
+            session_id: session_id.into(),
+            timestamp_ns: 1,
+            depth_scale: 1000.0,
+            camera: Some(CameraModel::default()),
+            colour: Some(ColourImage::default()),
+            depth: Some(DepthImage::default()),
+            ..Default::default()
+        }
+        .encode_to_vec()
+    }
+
+    #[test]
+    fn strings_from_a_frame_are_bounded() {
+        assert!(parse(
+            "r",
+            &frame("r", &"s".repeat(keys::MAX_SESSION_ID_LEN)),
+            1 << 20
+        )
+        .is_ok());
+        let long_session = parse("r", &frame("r", &"s".repeat(100_000)), 1 << 20).unwrap_err();
+        assert_eq!(long_session.reason, Reason::Malformed);
+        assert!(
+            long_session.message.contains("100000 bytes"),
+            "{}",
+            long_session.message
+        );
+        // A robot id of 100 kB echoed into the message: the message is cut.
+        let long_id = parse("r", &frame(&"x".repeat(100_000), "s"), 1 << 20).unwrap_err();
+        assert_eq!(long_id.reason, Reason::RobotIdMismatch);
+        assert_eq!(long_id.message.chars().count(), MAX_MESSAGE_CHARS + 1);
+        assert!(long_id.message.ends_with('…'));
+        // Cut on a character boundary.
+        let wide = reject(Reason::Malformed, "é".repeat(500), None);
+        assert_eq!(wide.message.chars().count(), MAX_MESSAGE_CHARS + 1);
+    }
 }
