@@ -25,6 +25,7 @@ pub mod sighting;
 pub mod tracking;
 pub mod triangulation;
 pub mod walls;
+pub mod worker;
 
 pub use atlas::{MapWriter, SharedMap};
 pub use error::TrackError;

@@ -16,8 +16,8 @@ use crate::mapping::{self, LocalBaJob, SolvedLocalBa};
 use crate::markers;
 use crate::triangulation;
 use crate::walls::WallPrior;
+use crate::worker::Worker;
 use std::collections::HashSet;
-use std::sync::mpsc;
 use std::time::Duration;
 use vsgraphs_optim::Se3;
 
@@ -28,6 +28,11 @@ const WHOLE_MAP_ITERATIONS: usize = 20;
 /// before the next. Its solve takes up to a few hundred milliseconds on a building-sized map;
 /// a robot walking at a keyframe every few frames gives it about that.
 const WHOLE_MAP_LAG: usize = 1;
+
+/// The whole-map optimisation's priority, as a nice value: its result is awaited a keyframe
+/// later, while a tracker waits on every frame, so on cores both want it yields (a thread at
+/// nice 10 gets about a tenth of the share of one at 0).
+const WHOLE_MAP_NICE: i32 = 10;
 
 /// How a map is mapped (see `TrackerConfig` for each field's default and reason).
 #[derive(Clone, Debug, PartialEq)]
@@ -112,73 +117,6 @@ pub enum MapReply {
     Flushed {
         local_ba: Duration,
     },
-}
-
-/// A thread that solves a map's optimisations of one kind in the background (named after the
-/// writer's thread and `suffix`), one job at a time.
-struct Worker<J, R> {
-    jobs: mpsc::Sender<J>,
-    results: mpsc::Receiver<R>,
-}
-
-impl<J: Send + 'static, R: Send + 'static> Worker<J, R> {
-    /// A worker whose thread runs at `nice` (0: the normal priority; more: yields the cores to
-    /// threads at the normal priority).
-    fn spawn(suffix: &str, nice: i32, solve: fn(J) -> R) -> std::io::Result<Self> {
-        let (jobs, job_receiver) = mpsc::channel::<J>();
-        let (result_sender, results) = mpsc::channel();
-        let name = std::thread::current()
-            .name()
-            .map_or_else(|| format!("map-{suffix}"), |n| format!("{n}-{suffix}"));
-        std::thread::Builder::new().name(name).spawn(move || {
-            if nice != 0 {
-                lower_priority(nice);
-            }
-            for job in job_receiver {
-                if result_sender.send(solve(job)).is_err() {
-                    return;
-                }
-            }
-        })?;
-        Ok(Self { jobs, results })
-    }
-
-    /// Hands `job` to the worker in `slot`, starting one on first use (or after one stopped).
-    fn submit(
-        slot: &mut Option<Self>,
-        suffix: &str,
-        nice: i32,
-        solve: fn(J) -> R,
-        job: J,
-    ) -> Result<(), TrackError> {
-        if slot.is_none() {
-            let worker = Self::spawn(suffix, nice, solve).map_err(|_| TrackError::WorkerStopped)?;
-            *slot = Some(worker);
-        }
-        let worker = slot.as_ref().expect("started above");
-        if worker.jobs.send(job).is_err() {
-            *slot = None;
-            return Err(TrackError::WorkerStopped);
-        }
-        Ok(())
-    }
-}
-
-/// The whole-map optimisation's priority, as a nice value: its result is awaited a keyframe
-/// later, while a tracker waits on every frame, so on cores both want it yields (a thread at
-/// nice 10 gets about a tenth of the share of one at 0).
-const WHOLE_MAP_NICE: i32 = 10;
-
-/// Lowers the calling thread's priority by `nice` (on Linux a nice value is the thread's own).
-/// Where that fails or is not supported the thread runs at the normal priority: the results
-/// are the same, only their timing differs.
-fn lower_priority(nice: i32) {
-    #[cfg(target_os = "linux")]
-    if let Err(error) = rustix::process::nice(nice) {
-        tracing::debug!(%error, "a worker runs at the normal priority");
-    }
-    #[cfg(not(target_os = "linux"))]
-    let _ = nice;
 }
 
 /// Local mapping's memory between the keyframes of one map.
@@ -443,31 +381,5 @@ impl LocalMapper {
             .world_from_camera
             .compose(&before.inverse());
         Ok((Some(correction), solve_time))
-    }
-}
-
-#[cfg(test)]
-mod tests {
-    use super::*;
-
-    /// The calling thread's nice value.
-    #[cfg(target_os = "linux")]
-    fn own_nice(_: ()) -> i32 {
-        rustix::process::getpriority_process(None).expect("a thread may read its priority")
-    }
-
-    #[cfg(target_os = "linux")]
-    #[test]
-    fn a_background_worker_yields_and_the_caller_keeps_its_priority() {
-        let before = own_nice(());
-        let mut slot = None;
-        Worker::submit(&mut slot, "test", WHOLE_MAP_NICE, own_nice, ()).unwrap();
-        let worker_nice = slot.as_ref().unwrap().results.recv().unwrap();
-        assert_eq!(worker_nice, (before + WHOLE_MAP_NICE).min(19));
-        assert_eq!(own_nice(()), before);
-        // At the normal priority a worker runs as its caller does.
-        let mut normal = None;
-        Worker::submit(&mut normal, "test", 0, own_nice, ()).unwrap();
-        assert_eq!(normal.as_ref().unwrap().results.recv().unwrap(), before);
     }
 }
