@@ -162,7 +162,9 @@ const CONTINUATION_BITS: u64 = 0x8888_8888_8888_8888;
 /// valid (non-zero 16-bit) depth.
 #[inline]
 fn next_value(previous: i32, code: u32) -> Result<i32, RvlError> {
-    let value = previous + (((code >> 1) as i32) ^ -((code & 1) as i32));
+    // A crafted code can be any 32-bit delta: the sum wraps (never in range when it does,
+    // as `previous` is a valid depth) instead of overflowing.
+    let value = previous.wrapping_add(((code >> 1) as i32) ^ -((code & 1) as i32));
     if (1..=i32::from(u16::MAX)).contains(&value) {
         Ok(value)
     } else {
@@ -393,7 +395,9 @@ impl<'a> NibbleReader<'a> {
                     code
                 } as u32;
                 start = stop;
-                previous += ((code >> 1) as i32) ^ -((code & 1) as i32);
+                // Wrapping, as in `next_value`; once out of range the window's result is
+                // refused, whatever later deltas bring back.
+                previous = previous.wrapping_add(((code >> 1) as i32) ^ -((code & 1) as i32));
                 out_of_range |= !(1..=i32::from(u16::MAX)).contains(&previous);
                 out[at] = previous as u16;
                 at += 1;
@@ -534,6 +538,45 @@ mod tests {
             encode(&[1, 2, 3], 2, 2),
             Err(RvlError::WrongLength { .. })
         ));
+    }
+
+    /// A stream of `numbers` after the header of a `pixels` × 1 image.
+    fn stream(pixels: u32, numbers: &[u32]) -> Vec<u8> {
+        let mut out = MAGIC.to_vec();
+        out.extend_from_slice(&pixels.to_le_bytes());
+        out.extend_from_slice(&1u32.to_le_bytes());
+        let mut writer = NibbleWriter {
+            out,
+            words: Vec::new(),
+            word: 0,
+            used: 0,
+        };
+        for &n in numbers {
+            writer.put(n);
+        }
+        writer.finish()
+    }
+
+    #[test]
+    fn deltas_beyond_32_bits_are_refused_not_a_panic() {
+        // An even zig-zag code c is the delta +c/2: after any depth the largest even code
+        // overflows a 32-bit sum. At the stream's end numbers are read one at a time; with more
+        // after them, a window at once.
+        let big = u32::MAX - 1;
+        let last = vec![0, 2, 2, big];
+        let mut followed = vec![0, 43, 2000, big, big];
+        followed.extend([0; 40]);
+        for numbers in [last, followed] {
+            let pixels = numbers[1];
+            let data = stream(pixels, &numbers);
+            assert!(matches!(
+                decode(&data, pixels, 1),
+                Err(RvlError::ValueOutOfRange)
+            ));
+        }
+        // The same stream with a small delta decodes: the test's stream is well formed.
+        let data = stream(3, &[0, 3, 2000, 2, 1]);
+        assert_eq!(decode(&data, 3, 1).unwrap(), [1000, 1001, 1000]);
     }
 
     #[test]
