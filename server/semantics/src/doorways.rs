@@ -557,6 +557,24 @@ mod tests {
         (markers, walls)
     }
 
+    /// The doorways of a scene with the default settings.
+    fn found(
+        markers: &[(MarkerId, Se3)],
+        walls: &[Wall],
+        points: &[MapPoint],
+        cameras: &[Vector3<f64>],
+        dictionary: &Dictionary,
+    ) -> Vec<Doorway> {
+        doorways_of(
+            markers,
+            walls,
+            points,
+            cameras,
+            dictionary,
+            &Openings::default(),
+        )
+    }
+
     #[test]
     fn up_is_away_from_the_wall_normals_and_along_the_markers() {
         let (markers, walls) = setting();
@@ -572,14 +590,7 @@ mod tests {
         let (markers, walls) = setting();
         let Scene { points, cameras } = scene(true);
         let dictionary = dictionary();
-        let doorways = doorways_of(
-            &markers,
-            &walls,
-            &points,
-            &cameras,
-            &dictionary,
-            &Openings::default(),
-        );
+        let doorways = found(&markers, &walls, &points, &cameras, &dictionary);
         assert_eq!(doorways.len(), 1, "{doorways:?}");
         let d = &doorways[0];
         assert_eq!(d.markers, vec![10, 11]);
@@ -622,14 +633,7 @@ mod tests {
         for (y, z) in [(1.3, 1.0), (1.5, 1.1), (1.6, 0.9)] {
             stray(Vector3::new(0.0, y, z), Vector3::x());
         }
-        let doorways = doorways_of(
-            &markers,
-            &walls,
-            &points,
-            &cameras,
-            &dictionary(),
-            &Openings::default(),
-        );
+        let doorways = found(&markers, &walls, &points, &cameras, &dictionary());
         assert_eq!(doorways.len(), 1, "{doorways:?}");
         let at = doorways[0].world_from_doorway.translation;
         assert!((at - Vector3::new(0.0, 1.45, 0.0)).norm() < 0.05, "{at}");
@@ -670,14 +674,7 @@ mod tests {
     fn a_closed_door_is_no_doorway() {
         let (markers, walls) = setting();
         let Scene { points, cameras } = scene(false);
-        let doorways = doorways_of(
-            &markers,
-            &walls,
-            &points,
-            &cameras,
-            &dictionary(),
-            &Openings::default(),
-        );
+        let doorways = found(&markers, &walls, &points, &cameras, &dictionary());
         assert!(doorways.is_empty(), "{doorways:?}");
     }
 
@@ -686,14 +683,7 @@ mod tests {
         let (markers, walls) = setting();
         let Scene { points, cameras } = scene(true);
         let none = Dictionary::parse(r#"{"rooms": [], "doors": []}"#).unwrap();
-        let doorways = doorways_of(
-            &markers,
-            &walls,
-            &points,
-            &cameras,
-            &none,
-            &Openings::default(),
-        );
+        let doorways = found(&markers, &walls, &points, &cameras, &none);
         assert!(doorways.is_empty(), "{doorways:?}");
     }
 }
