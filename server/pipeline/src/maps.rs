@@ -269,6 +269,7 @@ impl MapWriter for MapService {
             label,
             snapshot: snapshot.clone(),
             semantics: self.inner.semantics.clone(),
+            layer_behind: 0,
         };
         let thread = std::thread::Builder::new()
             .name(format!("map-{}", id.0))
@@ -315,13 +316,39 @@ struct Writer {
     label: usize,
     snapshot: Slot,
     semantics: Arc<RwLock<Semantics>>,
+    /// Keyframes mapped since the semantic layer was last published.
+    layer_behind: usize,
 }
+
+/// The map's walls are rebuilt after every keyframe, as local BA uses them; the rest of the
+/// semantic layer (doorways, rooms, corridors, and the walls as published), which nothing in the
+/// map's optimisation reads and which costs most (doorways read every point with the cameras
+/// that saw it), after this many keyframes, at a flush, and when no keyframe has come for
+/// [`LAYER_IDLE`]. A robot maps a keyframe every 0.1–0.3 s at walking pace, so the published
+/// layer trails the map by a second at most.
+const LAYER_EVERY_KEYFRAMES: usize = 5;
+const LAYER_IDLE: std::time::Duration = std::time::Duration::from_millis(500);
 
 impl Writer {
     fn run(mut self, commands: mpsc::Receiver<Command>) {
         let span = tracing::info_span!("map", id = self.map.id().0);
         let _entered = span.enter();
-        for command in commands {
+        loop {
+            let command = if self.layer_behind > 0 {
+                match commands.recv_timeout(LAYER_IDLE) {
+                    Ok(command) => command,
+                    Err(mpsc::RecvTimeoutError::Timeout) => {
+                        self.guarded("the map's semantic layer", Self::publish_semantics);
+                        continue;
+                    }
+                    Err(mpsc::RecvTimeoutError::Disconnected) => break,
+                }
+            } else {
+                match commands.recv() {
+                    Ok(command) => command,
+                    Err(_) => break,
+                }
+            };
             let (request, reply) = match command {
                 Command::Request { request, reply } => (request, reply),
                 Command::Refresh => {
@@ -353,7 +380,12 @@ impl Writer {
             // The robot's worker may have gone (the server stopping): nobody to tell.
             let _ = reply.send(answer);
             if stamp.is_some() && !flush {
-                self.guarded("the map's semantic layer", Self::publish_semantics);
+                self.layer_behind += 1;
+                if self.layer_behind >= LAYER_EVERY_KEYFRAMES {
+                    self.guarded("the map's semantic layer", Self::publish_semantics);
+                } else {
+                    self.guarded("the map's walls", Self::update_walls);
+                }
             }
         }
     }
@@ -398,6 +430,41 @@ impl Writer {
         lock(&self.snapshot).view = Arc::new(view);
     }
 
+    /// Local BA adjusts the walls with their markers and points from the next keyframe on.
+    fn set_walls(&mut self, walls: &[vsgraphs_semantics::Wall]) {
+        self.mapper.set_walls(
+            walls
+                .iter()
+                .map(|w| WallPrior {
+                    plane: w.plane,
+                    markers: w.markers.clone(),
+                })
+                .collect(),
+        );
+    }
+
+    /// Rebuilds the map's walls for local BA alone (as the whole layer would make them).
+    fn update_walls(&mut self) {
+        let started = std::time::Instant::now();
+        let settings = self
+            .semantics
+            .read()
+            .unwrap_or_else(|p| p.into_inner())
+            .clone();
+        let walls = settings.enabled.then(|| {
+            let map = self.map.read();
+            let (points, cameras) = model::live_points(&map, false);
+            let input = vsgraphs_semantics::MapInput {
+                markers: &model::marker_poses(&map),
+                points: &points,
+                cameras: &cameras,
+            };
+            vsgraphs_semantics::walls(&input, settings.dictionary.as_deref())
+        });
+        self.set_walls(walls.as_deref().unwrap_or(&[]));
+        tracing::debug!(ms = started.elapsed().as_secs_f64() * 1e3, "walls rebuilt");
+    }
+
     /// Rebuilds the map's semantic layer and publishes it in the latest snapshot.
     fn publish_semantics(&mut self) {
         let started = std::time::Instant::now();
@@ -410,7 +477,7 @@ impl Writer {
         let mut read_ms = 0.0;
         let semantic = settings.enabled.then(|| {
             let map = self.map.read();
-            let (points, cameras) = model::live_points(&map);
+            let (points, cameras) = model::live_points(&map, true);
             let input = vsgraphs_semantics::MapInput {
                 markers: &model::marker_poses(&map),
                 points: &points,
@@ -419,17 +486,8 @@ impl Writer {
             read_ms = started.elapsed().as_secs_f64() * 1e3;
             SemanticMap::build(&input, dictionary)
         });
-        // Local BA adjusts the walls with their markers and points from the next keyframe on.
-        self.mapper
-            .set_walls(semantic.as_ref().map_or_else(Vec::new, |s| {
-                s.walls
-                    .iter()
-                    .map(|w| WallPrior {
-                        plane: w.plane,
-                        markers: w.markers.clone(),
-                    })
-                    .collect()
-            }));
+        self.set_walls(semantic.as_ref().map_or(&[], |s| &s.walls));
+        self.layer_behind = 0;
         let built = std::time::Instant::now();
         let mut view = (*lock(&self.snapshot).view).clone();
         model::set_semantics(&mut view, semantic.as_ref(), dictionary);

@@ -89,9 +89,13 @@ pub fn marker_poses(map: &Map) -> Vec<(i32, Se3)> {
         .collect()
 }
 
-/// The map's points (not the ones culled as bad) with the keyframes that saw them, and the
-/// keyframes' camera centres (indexed by keyframe id), as the semantic layer takes them.
-pub fn live_points(map: &Map) -> (Vec<vsgraphs_semantics::MapPoint>, Vec<Vector3<f64>>) {
+/// The map's points (not the ones culled as bad), with the keyframes that saw them when
+/// `with_cameras` (doorways need them, walls do not), and the keyframes' camera centres
+/// (indexed by keyframe id), as the semantic layer takes them.
+pub fn live_points(
+    map: &Map,
+    with_cameras: bool,
+) -> (Vec<vsgraphs_semantics::MapPoint>, Vec<Vector3<f64>>) {
     let cameras = map
         .keyframes
         .iter()
@@ -104,7 +108,11 @@ pub fn live_points(map: &Map) -> (Vec<vsgraphs_semantics::MapPoint>, Vec<Vector3
         .map(|p| vsgraphs_semantics::MapPoint {
             position: p.position,
             toward_cameras: p.normal,
-            cameras: p.observations.iter().map(|(k, _)| k.0).collect(),
+            cameras: if with_cameras {
+                p.observations.iter().map(|(k, _)| k.0).collect()
+            } else {
+                Vec::new()
+            },
         })
         .collect();
     (points, cameras)

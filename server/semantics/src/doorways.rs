@@ -14,8 +14,8 @@
 //! opening the map does not show (a closed door, a door not yet looked through), or that hangs
 //! on no wall, gives no doorway: its place is not known well enough to be one.
 
+use crate::cloud::{Cell, Cloud};
 use crate::dictionary::{Dictionary, MarkerId, MarkerRole};
-use crate::wall_points::MapPoint;
 use crate::walls::Wall;
 use nalgebra::{Matrix3, Rotation3, SymmetricEigen, Unit, UnitQuaternion, Vector3};
 use vsgraphs_optim::{Plane, Se3};
@@ -149,7 +149,7 @@ struct Seen {
 pub fn doorways_of(
     markers: &[(MarkerId, Se3)],
     walls: &[Wall],
-    points: &[MapPoint],
+    points: &Cloud<'_>,
     cameras: &[Vector3<f64>],
     dictionary: &Dictionary,
     settings: &Openings,
@@ -259,7 +259,7 @@ fn opening_near(
     marker: &Vector3<f64>,
     plane: &Plane,
     up: &Unit<Vector3<f64>>,
-    points: &[MapPoint],
+    points: &Cloud<'_>,
     cameras: &[Vector3<f64>],
     settings: &Openings,
 ) -> Option<Opening> {
@@ -272,28 +272,49 @@ fn opening_near(
         [r.dot(&along), r.dot(&vertical)]
     };
     let reach = |[a, _]: [f64; 2]| a.abs() <= settings.search_m;
-    let mut bounding = Vec::new();
+    // The points on the wall within reach bound the opening.
+    let bounding: Vec<[f64; 2]> = points
+        .within(|cell| {
+            near_wall(
+                cell,
+                plane,
+                &origin,
+                &along,
+                settings.wall_band_m,
+                settings.search_m,
+            )
+        })
+        .filter(|p| plane.distance(&p.position).abs() <= settings.wall_band_m)
+        .map(|p| in_wall(&p.position))
+        .filter(|&at| reach(at))
+        .collect();
+    // The points beyond it show where it is open: where their rays to the cameras before the
+    // wall cross its plane (their mean, which lies inside the opening with them). A crossing
+    // lies between a point and its camera, so only cells beyond the wall whose rays reach
+    // before it and along to the opening's stretch of it can give one.
     let mut crossings = Vec::new();
-    for point in points {
+    // Each camera's distance before the wall, once: points share their cameras.
+    let camera_before: Vec<f64> = cameras.iter().map(|c| plane.distance(c)).collect();
+    let beyond = points.within(|cell| {
+        let (low, high) = cell.rays_along(&origin, &along);
+        let (_, before) = cell.rays_along(&origin, &normal);
+        plane.distance(&cell.centre) <= Cell::RADIUS_M + SLACK_M - settings.clear_m
+            && before >= settings.clear_m - SLACK_M
+            && low <= settings.search_m + SLACK_M
+            && high >= -settings.search_m - SLACK_M
+    });
+    for point in beyond {
         let depth = plane.distance(&point.position);
-        if depth.abs() <= settings.wall_band_m {
-            let at = in_wall(&point.position);
-            if reach(at) {
-                bounding.push(at);
-            }
+        if depth > -settings.clear_m || depth.abs() <= settings.wall_band_m {
             continue;
         }
-        if depth > -settings.clear_m {
-            continue;
-        }
-        // Beyond the wall: where its rays to the cameras before the wall cross the plane
-        // (their mean, which lies inside the opening with them).
         let (mut sum, mut n) = (Vector3::zeros(), 0);
         for &c in &point.cameras {
-            let Some(camera) = cameras.get(c as usize) else {
+            let (Some(camera), Some(&before)) =
+                (cameras.get(c as usize), camera_before.get(c as usize))
+            else {
                 continue;
             };
-            let before = plane.distance(camera);
             if before >= settings.clear_m {
                 sum += camera + (point.position - camera) * (before / (before - depth));
                 n += 1;
@@ -366,11 +387,29 @@ fn opening_near(
     })
 }
 
+/// Rounding's worth of slack for the tests of whole cells, metres.
+const SLACK_M: f64 = 1e-9;
+
+/// Whether `cell` can hold a point within `across_m` of `plane` and `along_m` along it (by
+/// `along`) from `origin`.
+fn near_wall(
+    cell: &Cell,
+    plane: &Plane,
+    origin: &Vector3<f64>,
+    along: &Vector3<f64>,
+    across_m: f64,
+    along_m: f64,
+) -> bool {
+    let reach = Cell::RADIUS_M + SLACK_M;
+    plane.distance(&cell.centre).abs() <= across_m + reach
+        && (cell.centre - origin).dot(along).abs() <= along_m + reach
+}
+
 /// The floor's height (along `vertical`, from `origin`) near an opening: the lowest level that
 /// many of the points around it share. Nothing is seen below a floor but stray points, so the
 /// first dense level from below is the floor.
 fn floor_level(
-    points: &[MapPoint],
+    points: &Cloud<'_>,
     plane: &Plane,
     origin: &Vector3<f64>,
     along: &Vector3<f64>,
@@ -378,7 +417,16 @@ fn floor_level(
     settings: &Openings,
 ) -> Option<f64> {
     let mut heights: Vec<f64> = points
-        .iter()
+        .within(|cell| {
+            near_wall(
+                cell,
+                plane,
+                origin,
+                along,
+                settings.search_m,
+                settings.search_m,
+            )
+        })
         .filter(|p| {
             plane.distance(&p.position).abs() <= settings.search_m
                 && (p.position - origin).dot(along).abs() <= settings.search_m
@@ -442,6 +490,7 @@ fn edge(inside: &[f64], bounds: &[f64]) -> Option<(f64, f64)> {
 mod tests {
     use super::*;
     use crate::testing::marker;
+    use crate::MapPoint;
 
     /// Room A at x > 0, room B at x < 0, the wall between them the plane x = 0, with an opening
     /// 0.9 m wide (y from 1.0 to 1.9) and 2 m high; floor z = 0. Door marker 10 hangs on A's
@@ -568,7 +617,7 @@ mod tests {
         doorways_of(
             markers,
             walls,
-            points,
+            &Cloud::new(points, cameras),
             cameras,
             dictionary,
             &Openings::default(),
@@ -685,5 +734,36 @@ mod tests {
         let none = Dictionary::parse(r#"{"rooms": [], "doors": []}"#).unwrap();
         let doorways = found(&markers, &walls, &points, &cameras, &none);
         assert!(doorways.is_empty(), "{doorways:?}");
+    }
+
+    #[test]
+    fn the_walls_alone_are_the_layer_s_walls_without_the_cameras() {
+        let (markers, _) = setting();
+        let Scene { points, cameras } = scene(true);
+        let dictionary = dictionary();
+        let input = crate::MapInput {
+            markers: &markers,
+            points: &points,
+            cameras: &cameras,
+        };
+        let layer = crate::SemanticMap::build(&input, Some(&dictionary));
+        assert_eq!(
+            (layer.walls.len(), layer.doorways.len()),
+            (2, 1),
+            "{layer:?}"
+        );
+        let bare: Vec<MapPoint> = points
+            .iter()
+            .map(|p| MapPoint {
+                cameras: Vec::new(),
+                ..p.clone()
+            })
+            .collect();
+        let input = crate::MapInput {
+            markers: &markers,
+            points: &bare,
+            cameras: &[],
+        };
+        assert_eq!(crate::walls(&input, Some(&dictionary)), layer.walls);
     }
 }

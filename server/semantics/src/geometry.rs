@@ -10,10 +10,10 @@
 //! pairs are found from markers rather than walls: a room takes the markers of its walls inside
 //! its rectangle, a corridor the markers that paired its walls, and spaces may share a wall.
 
+use crate::cloud::{Cell, Cloud};
 use crate::dictionary::{MarkerId, SpaceKind};
 use crate::spaces::{facing, perpendicular, Space, SpaceChecks};
 use crate::walls::Wall;
-use crate::MapPoint;
 use nalgebra::{Unit, Vector3};
 use std::collections::BTreeMap;
 use vsgraphs_optim::factors::room::{corridor_centre, room_centre};
@@ -58,7 +58,7 @@ pub fn geometric_spaces(
     usable: &[usize],
     marker_position: impl Fn(MarkerId) -> Option<Vector3<f64>>,
     is_door: impl Fn(MarkerId) -> bool,
-    points: &[MapPoint],
+    points: &Cloud<'_>,
     up: &Unit<Vector3<f64>>,
     checks: &SpaceChecks,
 ) -> Vec<Space> {
@@ -176,7 +176,7 @@ struct Pair {
 /// facing side straight across.
 fn facing_pairs(
     sides: &[(usize, Side)],
-    points: &[MapPoint],
+    points: &Cloud<'_>,
     up: &Unit<Vector3<f64>>,
     checks: &SpaceChecks,
 ) -> Vec<Pair> {
@@ -187,7 +187,7 @@ fn facing_pairs(
             let plane = &side.wall.plane;
             let along = up.cross(&plane.normal);
             let mut at: Vec<(f64, f64)> = points
-                .iter()
+                .within(|cell| plane.distance(&cell.centre).abs() <= ACROSS_BAND_M + Cell::RADIUS_M)
                 .filter(|p| {
                     plane.distance(&p.position).abs() <= ACROSS_BAND_M
                         && p.toward_cameras.dot(&plane.normal) > 0.0
@@ -258,7 +258,7 @@ mod tests {
     use super::*;
     use crate::testing::marker;
     use crate::walls::{walls_of, WallAssociation};
-    use crate::WallPoints;
+    use crate::{MapPoint, WallPoints};
     use vsgraphs_optim::Se3;
 
     fn spaces_of(markers: &[(MarkerId, Se3)]) -> (Vec<Wall>, Vec<Space>) {
@@ -271,7 +271,7 @@ mod tests {
     ) -> (Vec<Wall>, Vec<Space>) {
         let walls = walls_of(
             markers,
-            &[],
+            &Cloud::new(&[], &[]),
             None,
             &WallAssociation::default(),
             &WallPoints::default(),
@@ -283,7 +283,7 @@ mod tests {
             &usable,
             position,
             |_| false,
-            points,
+            &Cloud::new(points, &[]),
             &Vector3::z_axis(),
             &SpaceChecks::default(),
         );

@@ -7,6 +7,7 @@
 //! [`SemanticMap::build`] does all of it for a map. Must not depend on zenoh, tokio or the
 //! pipeline: the pipeline runs it on each map's writer.
 
+pub mod cloud;
 pub mod dictionary;
 pub mod doorways;
 pub mod geometry;
@@ -15,10 +16,11 @@ pub mod topology;
 pub mod wall_points;
 pub mod walls;
 
+pub use cloud::{Cloud, MapPoint};
 pub use dictionary::{Dictionary, DictionaryError, MarkerId, MarkerRole, SpaceKind};
 pub use doorways::{Doorway, Openings};
 pub use spaces::{Missing, Space, SpaceChecks};
-pub use wall_points::{MapPoint, WallPoints};
+pub use wall_points::WallPoints;
 pub use walls::{Wall, WallAssociation};
 
 use nalgebra::Vector3;
@@ -44,6 +46,18 @@ pub struct SemanticMap {
     pub missing: Vec<Missing>,
 }
 
+/// The walls of the map's markers and points, as [`SemanticMap::build`] makes them: what the
+/// map's optimisation reads of the layer. Points need no cameras for it.
+pub fn walls(map: &MapInput<'_>, dictionary: Option<&Dictionary>) -> Vec<Wall> {
+    walls::walls_of(
+        map.markers,
+        &Cloud::new(map.points, map.cameras),
+        dictionary,
+        &WallAssociation::default(),
+        &WallPoints::default(),
+    )
+}
+
 impl SemanticMap {
     /// Walls from the map's markers and points, then the doorways of its door markers and the
     /// rooms and corridors of `dictionary` that they make, and rooms and corridors from the
@@ -51,9 +65,11 @@ impl SemanticMap {
     pub fn build(map: &MapInput<'_>, dictionary: Option<&Dictionary>) -> Self {
         let markers = map.markers;
         let started = std::time::Instant::now();
+        let points = Cloud::new(map.points, map.cameras);
+        let gridded = std::time::Instant::now();
         let walls = walls::walls_of(
             markers,
-            map.points,
+            &points,
             dictionary,
             &WallAssociation::default(),
             &WallPoints::default(),
@@ -86,7 +102,7 @@ impl SemanticMap {
                 &usable,
                 position,
                 |m| matches!(dictionary.map(|d| d.role(m)), Some(MarkerRole::Door { .. })),
-                map.points,
+                &points,
                 &up,
                 &checks,
             );
@@ -117,7 +133,7 @@ impl SemanticMap {
             Some(dictionary) => doorways::doorways_of(
                 markers,
                 &walls,
-                map.points,
+                &points,
                 map.cameras,
                 dictionary,
                 &Openings::default(),
@@ -125,7 +141,8 @@ impl SemanticMap {
             None => Vec::new(),
         };
         tracing::trace!(
-            walls_and_spaces_ms = (walls_done - started).as_secs_f64() * 1e3,
+            grid_ms = (gridded - started).as_secs_f64() * 1e3,
+            walls_and_spaces_ms = (walls_done - gridded).as_secs_f64() * 1e3,
             doorways_ms = walls_done.elapsed().as_secs_f64() * 1e3,
             "semantic layer built"
         );

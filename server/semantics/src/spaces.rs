@@ -229,7 +229,7 @@ mod tests {
     ) -> (Vec<Wall>, Vec<Space>, Vec<Missing>) {
         let walls = walls_of(
             markers,
-            &[],
+            &crate::Cloud::new(&[], &[]),
             Some(dictionary),
             &WallAssociation::default(),
             &WallPoints::default(),

@@ -8,18 +8,9 @@
 //! normal down and the marker lies on it. Only points seen from the marker's side count: the
 //! other face of a partition is a parallel plane a wall's thickness away, full of points.
 
+use crate::cloud::Cloud;
 use nalgebra::{Matrix3, SymmetricEigen, Unit, Vector3};
 use vsgraphs_optim::Plane;
-
-/// A map point as the semantic layer takes it.
-#[derive(Clone, Debug, PartialEq)]
-pub struct MapPoint {
-    pub position: Vector3<f64>,
-    /// The mean direction from the point to the cameras that saw it (unit).
-    pub toward_cameras: Vector3<f64>,
-    /// The cameras that saw it, as indices into the map's camera centres.
-    pub cameras: Vec<u32>,
-}
 
 /// How points around a marker make its wall's plane.
 #[derive(Clone, Debug, PartialEq)]
@@ -69,11 +60,12 @@ impl Default for WallPoints {
 pub fn wall_plane(
     marker: &Plane,
     centre: &Vector3<f64>,
-    points: &[MapPoint],
+    points: &Cloud<'_>,
     settings: &WallPoints,
 ) -> Option<Plane> {
     let near: Vec<Vector3<f64>> = points
-        .iter()
+        .near(centre, settings.radius_m)
+        .into_iter()
         .filter(|p| {
             (p.position - centre).norm() <= settings.radius_m
                 && p.toward_cameras.dot(&marker.normal) > 0.0
@@ -211,6 +203,7 @@ impl SplitMix {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::cloud::MapPoint;
 
     /// Points on a grid over the wall x = 4 (facing -x) around (4, 1, 1.2), ±`noise` m off it
     /// in a fixed pattern, plus points of the floor and of a side wall y = 1.8, all seen from
@@ -253,7 +246,7 @@ mod tests {
             let plane = wall_plane(
                 &tilted_marker(degrees),
                 &centre,
-                &scene(0.01),
+                &Cloud::new(&scene(0.01), &[]),
                 &WallPoints::default(),
             )
             .expect("a wall");
@@ -277,7 +270,12 @@ mod tests {
             .collect();
         assert!(few.len() < 6);
         assert_eq!(
-            wall_plane(&tilted_marker(3.0), &centre, &few, &WallPoints::default()),
+            wall_plane(
+                &tilted_marker(3.0),
+                &centre,
+                &Cloud::new(&few, &[]),
+                &WallPoints::default()
+            ),
             None
         );
         // A cloud with no wall in it, dense enough that any slab of it fixes a normal well.
@@ -293,7 +291,12 @@ mod tests {
             })
             .collect();
         assert_eq!(
-            wall_plane(&tilted_marker(3.0), &centre, &cloud, &WallPoints::default()),
+            wall_plane(
+                &tilted_marker(3.0),
+                &centre,
+                &Cloud::new(&cloud, &[]),
+                &WallPoints::default()
+            ),
             None
         );
     }

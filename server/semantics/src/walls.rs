@@ -5,8 +5,9 @@
 //! Where the map points around a marker make a plane ([`wall_plane`]), that plane stands in for
 //! the marker's own.
 
+use crate::cloud::Cloud;
 use crate::dictionary::{Dictionary, MarkerId, MarkerRole};
-use crate::wall_points::{wall_plane, MapPoint, WallPoints};
+use crate::wall_points::{wall_plane, WallPoints};
 use nalgebra::{Unit, Vector3};
 use vsgraphs_optim::{Plane, Se3};
 
@@ -56,7 +57,7 @@ pub fn marker_plane(world_from_marker: &Se3) -> Plane {
 /// paper's rule: a marker in no door list is one).
 pub fn walls_of(
     markers: &[(MarkerId, Se3)],
-    points: &[MapPoint],
+    points: &Cloud<'_>,
     dictionary: Option<&Dictionary>,
     association: &WallAssociation,
     on_wall: &WallPoints,
@@ -269,7 +270,7 @@ mod tests {
     ) -> Vec<Wall> {
         walls_of(
             markers,
-            points,
+            &Cloud::new(points, &[]),
             dictionary,
             &WallAssociation::default(),
             &WallPoints::default(),
