@@ -171,6 +171,12 @@ enum Command {
         /// groups), v2 (a meta marker per space) or none (rooms and corridors from geometry).
         #[arg(long, value_enum, default_value_t = DictionaryChoice::V1)]
         dictionary: DictionaryChoice,
+        /// Hand the pipeline each frame at its time in the walk, as a robot streams it, instead
+        /// of as fast as it takes them, with the renderer (the robot) at the lowest priority:
+        /// per-frame times as a server streamed to would see them (the results are the same
+        /// either way).
+        #[arg(long)]
+        realtime: bool,
         /// Print JSON instead of the tables.
         #[arg(long)]
         json: bool,
@@ -247,6 +253,7 @@ fn main() -> anyhow::Result<()> {
             config,
             out,
             dictionary,
+            realtime,
             json,
         } => {
             let config = match config {
@@ -259,6 +266,7 @@ fn main() -> anyhow::Result<()> {
                 limit,
                 seed,
                 dictionary,
+                realtime,
                 ..ScenarioOptions::default()
             };
             let run = vsgraphs_eval::scenario::run(&config, &scenario, &options, |done, total| {

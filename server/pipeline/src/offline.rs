@@ -40,6 +40,8 @@ pub struct OfflineSummary {
     pub detection_ms: Vec<f64>,
     pub features_ms: Vec<f64>,
     pub tracking_ms: Vec<f64>,
+    /// The tracking thread's CPU time in tracking (without waits for a core).
+    pub tracking_cpu_ms: Vec<f64>,
     pub mapping_ms: Vec<f64>,
     pub local_ba_ms: Vec<f64>,
     pub elapsed: Duration,
@@ -228,6 +230,7 @@ pub fn run_frames(
             let pose = tracking.result.as_ref().and_then(|r| {
                 summary.features_ms.push(ms(r.times.features));
                 summary.tracking_ms.push(ms(r.times.tracking));
+                summary.tracking_cpu_ms.push(ms(r.times.tracking_cpu));
                 summary.mapping_ms.push(ms(r.times.mapping));
                 summary.local_ba_ms.push(ms(r.times.local_ba));
                 if let Some(event) = &r.event {

@@ -142,6 +142,9 @@ impl TrackingState {
 pub struct StageTimes {
     pub features: Duration,
     pub tracking: Duration,
+    /// The CPU time of the tracking thread in `tracking`: its own work, without the time it
+    /// waited for a core that other threads held.
+    pub tracking_cpu: Duration,
     /// Keyframe insertion, fusion, culling and building the local BA (on this thread),
     /// including any wait for the previous keyframe's BA.
     pub mapping: Duration,
@@ -378,6 +381,7 @@ impl Tracker {
             times,
         };
         let tracking_started = Instant::now();
+        let tracking_cpu_started = thread_cpu_time();
         let active = self.maps.last().cloned();
         let tracked = match self.state {
             TrackingState::Initialising => {
@@ -434,6 +438,7 @@ impl Tracker {
             }
         };
         times.tracking = tracking_started.elapsed();
+        times.tracking_cpu = thread_cpu_time().saturating_sub(tracking_cpu_started);
         if let (Some((frame, outcome)), Some(map)) = (tracked, active) {
             let mapping_started = Instant::now();
             let keyframe = self.finish_frame(writer, &map, frame, outcome, &rig, &mut result)?;
@@ -674,6 +679,15 @@ impl Tracker {
 
 fn unexpected(reply: &MapReply) -> TrackError {
     TrackError::Writer(format!("unexpected reply {reply:?}"))
+}
+
+/// The calling thread's CPU time so far.
+fn thread_cpu_time() -> Duration {
+    let t = rustix::time::clock_gettime(rustix::time::ClockId::ThreadCPUTime);
+    Duration::new(
+        t.tv_sec.max(0) as u64,
+        t.tv_nsec.clamp(0, 999_999_999) as u32,
+    )
 }
 
 #[cfg(test)]
