@@ -131,6 +131,21 @@ async fn bad_frames_are_rejected_with_reasons_and_the_stream_goes_on() {
     rejected("malformed").await;
     good("after garbage bytes").await;
 
+    // A frame of the robot's own session stamped at the end of time: refused, and the frames
+    // after it, stamped now, still pass (it would have made every one of them look old).
+    robot
+        .publish(
+            u64::MAX,
+            model.clone(),
+            1000.0,
+            colour.clone(),
+            depth.clone(),
+        )
+        .await
+        .unwrap();
+    rejected("bad_timestamp").await;
+    good("after a frame stamped at the end of time").await;
+
     let impostor = RgbdFrame {
         robot_id: "someone-else".into(),
         session_id: "s".into(),
@@ -149,8 +164,8 @@ async fn bad_frames_are_rejected_with_reasons_and_the_stream_goes_on() {
 
     let status = test.client.robot("clumsy").await.unwrap();
     let f = &status.frames;
-    assert_eq!(f.processed, 7);
-    assert_eq!(f.rejected, 7);
+    assert_eq!(f.processed, 8);
+    assert_eq!(f.rejected, 8);
     assert_eq!(f.rejected_by_reason["unknown_encoding"], 2);
     assert_eq!(f.received, f.processed + f.rejected + f.dropped);
     assert_eq!(f.lost, 0);

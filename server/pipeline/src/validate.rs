@@ -2,6 +2,7 @@
 //! the header fields, the order of timestamps. Every failure is a [`Rejection`] with a reason
 //! code (counted per robot in the API) and a message a user can read.
 
+use std::time::{Duration, Instant};
 use vsgraphs_proto::{keys, Message, RgbdFrame};
 use vsgraphs_vision::decode::DecodeError;
 
@@ -81,7 +82,16 @@ pub struct FrameHeader {
     pub session_id: String,
     pub sequence: u64,
     pub timestamp_ns: u64,
+    /// When the server accepted it, for a live stream (none for frames read from disk, which
+    /// come as fast as they are processed).
+    pub accepted: Option<Instant>,
 }
+
+/// How far a live robot's stamps may run ahead of the time the server saw pass: delays in
+/// queues and on the network, seconds at worst. A robot's clock need not agree with the
+/// server's, but it cannot run faster than time; a frame stamped far in the future would
+/// otherwise make every later frame of its session look old.
+pub const MAX_STAMP_LEAD: Duration = Duration::from_secs(10);
 
 /// Decodes the protobuf and checks everything but the image contents.
 pub fn parse(robot_id: &str, bytes: &[u8], max_frame_bytes: usize) -> Result<RgbdFrame, Rejection> {
@@ -157,24 +167,41 @@ pub fn parse(robot_id: &str, bytes: &[u8], max_frame_bytes: usize) -> Result<Rgb
     Ok(frame)
 }
 
-/// Refuses a frame of `previous`'s session whose timestamp is not after `previous`'s.
+/// Refuses a frame of `previous`'s session whose timestamp is not after `previous`'s, or (on
+/// a live stream) that runs more than [`MAX_STAMP_LEAD`] ahead of it beyond the time passed
+/// since it was accepted.
 pub fn check_order(frame: &RgbdFrame, previous: Option<&FrameHeader>) -> Result<(), Rejection> {
-    match previous {
-        Some(previous)
-            if previous.session_id == frame.session_id
-                && frame.timestamp_ns <= previous.timestamp_ns =>
-        {
-            Err(reject(
-                Reason::TimestampNotIncreasing,
-                format!(
-                    "timestamp {} ns is not after the previous frame's {} ns",
-                    frame.timestamp_ns, previous.timestamp_ns
-                ),
-                Some(frame.sequence),
-            ))
-        }
-        _ => Ok(()),
+    let Some(previous) = previous.filter(|p| p.session_id == frame.session_id) else {
+        return Ok(());
+    };
+    if frame.timestamp_ns <= previous.timestamp_ns {
+        return Err(reject(
+            Reason::TimestampNotIncreasing,
+            format!(
+                "timestamp {} ns is not after the previous frame's {} ns",
+                frame.timestamp_ns, previous.timestamp_ns
+            ),
+            Some(frame.sequence),
+        ));
     }
+    let Some(accepted) = previous.accepted else {
+        return Ok(());
+    };
+    let passed = accepted.elapsed();
+    let lead = Duration::from_nanos(frame.timestamp_ns - previous.timestamp_ns);
+    if lead > passed + MAX_STAMP_LEAD {
+        return Err(reject(
+            Reason::BadTimestamp,
+            format!(
+                "timestamp {} ns is {:.1} s after the previous frame's, but {:.1} s have passed",
+                frame.timestamp_ns,
+                lead.as_secs_f64(),
+                passed.as_secs_f64()
+            ),
+            Some(frame.sequence),
+        ));
+    }
+    Ok(())
 }
 
 /// An image that would not decode, as a rejection: its reason follows the error, else `fallback`.
@@ -238,5 +265,43 @@ mod tests {
         // Cut on a character boundary.
         let wide = reject(Reason::Malformed, "é".repeat(500), None);
         assert_eq!(wide.message.chars().count(), MAX_MESSAGE_CHARS + 1);
+    }
+
+    #[test]
+    fn a_stamp_far_ahead_of_the_time_passed_is_refused() {
+        let stamped = |timestamp_ns: u64| RgbdFrame {
+            session_id: "s".into(),
+            sequence: 2,
+            timestamp_ns,
+            ..Default::default()
+        };
+        let previous = |ago_s: u64| FrameHeader {
+            session_id: "s".into(),
+            sequence: 1,
+            timestamp_ns: 1_000_000_000,
+            accepted: Some(Instant::now() - Duration::from_secs(ago_s)),
+        };
+        // The next frame at 30 frames/s, and one after a pause as long as the time passed.
+        assert!(check_order(&stamped(1_033_000_000), Some(&previous(0))).is_ok());
+        assert!(check_order(&stamped(61_000_000_000), Some(&previous(60))).is_ok());
+        // A minute ahead with a second passed, and the end of time.
+        for stamp in [61_000_000_000, u64::MAX] {
+            let refused = check_order(&stamped(stamp), Some(&previous(1))).unwrap_err();
+            assert_eq!(refused.reason, Reason::BadTimestamp, "{refused:?}");
+        }
+        // Frames read from disk come as fast as they are processed: no lead is checked.
+        let from_disk = FrameHeader {
+            accepted: None,
+            ..previous(0)
+        };
+        assert!(check_order(&stamped(u64::MAX), Some(&from_disk)).is_ok());
+        // Another session starts afresh; an older stamp in the same one is refused as before.
+        let other = RgbdFrame {
+            session_id: "t".into(),
+            ..stamped(5)
+        };
+        assert!(check_order(&other, Some(&previous(0))).is_ok());
+        let old = check_order(&stamped(5), Some(&previous(0))).unwrap_err();
+        assert_eq!(old.reason, Reason::TimestampNotIncreasing);
     }
 }

@@ -222,6 +222,7 @@ fn run_worker(robot: Arc<RobotEntry>, config: &Config, maps: MapService) {
                     session_id: processed.session_id.clone(),
                     sequence: processed.sequence,
                     timestamp_ns: processed.timestamp_ns,
+                    accepted: Some(std::time::Instant::now()),
                 });
                 continuity.dropped_since = 0;
                 continuity.unsequenced_since = 0;
@@ -294,6 +295,7 @@ mod tests {
             session_id: session.into(),
             sequence,
             timestamp_ns: 1,
+            accepted: None,
         })
     }
 
