@@ -397,13 +397,12 @@ impl Writer {
             MapRequest::Insert(insert) => Some(insert.frame.timestamp_ns),
             MapRequest::Flush(_) => None,
         };
-        let settings = self.semantics.read().unwrap_or_else(|p| p.into_inner());
+        let settings = self.settings();
         let every = if settings.enabled {
             settings.optimise_every
         } else {
             0
         };
-        drop(settings);
         self.mapper.set_whole_map_every(every);
         let reply = self.mapper.handle(&mut self.map.write(), request)?;
         Ok((reply, stamp))
@@ -443,23 +442,38 @@ impl Writer {
         );
     }
 
+    /// The semantic layer's settings now.
+    fn settings(&self) -> Semantics {
+        self.semantics
+            .read()
+            .unwrap_or_else(|p| p.into_inner())
+            .clone()
+    }
+
+    /// `build` run on what the semantic layer reads of the map (with the cameras that saw each
+    /// point when `with_cameras`).
+    fn read_map<T>(
+        &self,
+        with_cameras: bool,
+        build: impl FnOnce(&vsgraphs_semantics::MapInput<'_>) -> T,
+    ) -> T {
+        let map = self.map.read();
+        let (points, cameras) = model::live_points(&map, with_cameras);
+        build(&vsgraphs_semantics::MapInput {
+            markers: &model::marker_poses(&map),
+            points: &points,
+            cameras: &cameras,
+        })
+    }
+
     /// Rebuilds the map's walls for local BA alone (as the whole layer would make them).
     fn update_walls(&mut self) {
         let started = std::time::Instant::now();
-        let settings = self
-            .semantics
-            .read()
-            .unwrap_or_else(|p| p.into_inner())
-            .clone();
+        let settings = self.settings();
         let walls = settings.enabled.then(|| {
-            let map = self.map.read();
-            let (points, cameras) = model::live_points(&map, false);
-            let input = vsgraphs_semantics::MapInput {
-                markers: &model::marker_poses(&map),
-                points: &points,
-                cameras: &cameras,
-            };
-            vsgraphs_semantics::walls(&input, settings.dictionary.as_deref())
+            self.read_map(false, |input| {
+                vsgraphs_semantics::walls(input, settings.dictionary.as_deref())
+            })
         });
         self.set_walls(walls.as_deref().unwrap_or(&[]));
         tracing::debug!(ms = started.elapsed().as_secs_f64() * 1e3, "walls rebuilt");
@@ -468,23 +482,14 @@ impl Writer {
     /// Rebuilds the map's semantic layer and publishes it in the latest snapshot.
     fn publish_semantics(&mut self) {
         let started = std::time::Instant::now();
-        let settings = self
-            .semantics
-            .read()
-            .unwrap_or_else(|p| p.into_inner())
-            .clone();
+        let settings = self.settings();
         let dictionary = settings.dictionary.as_deref();
         let mut read_ms = 0.0;
         let semantic = settings.enabled.then(|| {
-            let map = self.map.read();
-            let (points, cameras) = model::live_points(&map, true);
-            let input = vsgraphs_semantics::MapInput {
-                markers: &model::marker_poses(&map),
-                points: &points,
-                cameras: &cameras,
-            };
-            read_ms = started.elapsed().as_secs_f64() * 1e3;
-            SemanticMap::build(&input, dictionary)
+            self.read_map(true, |input| {
+                read_ms = started.elapsed().as_secs_f64() * 1e3;
+                SemanticMap::build(input, dictionary)
+            })
         });
         self.set_walls(semantic.as_ref().map_or(&[], |s| &s.walls));
         self.layer_behind = 0;
