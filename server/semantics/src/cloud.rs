@@ -87,11 +87,6 @@ impl<'a> Cloud<'a> {
         Self { points, cells }
     }
 
-    /// Every point, in the map's order.
-    pub fn points(&self) -> &'a [MapPoint] {
-        self.points
-    }
-
     /// The points of the cells `may_hold` keeps, cell by cell. It must keep every cell that
     /// can hold a point the search wants (the points are tested again after).
     pub fn within<'s>(
