@@ -481,6 +481,8 @@ impl Writer {
 
     /// Rebuilds the map's semantic layer and publishes it in the latest snapshot.
     fn publish_semantics(&mut self) {
+        // Due no more even if the build panics: an idle map does not retry it every half second.
+        self.layer_behind = 0;
         let started = std::time::Instant::now();
         let settings = self.settings();
         let dictionary = settings.dictionary.as_deref();
@@ -492,7 +494,6 @@ impl Writer {
             })
         });
         self.set_walls(semantic.as_ref().map_or(&[], |s| &s.walls));
-        self.layer_behind = 0;
         let built = std::time::Instant::now();
         let mut view = (*lock(&self.snapshot).view).clone();
         model::set_semantics(&mut view, semantic.as_ref(), dictionary);
