@@ -121,16 +121,11 @@ impl<'a> Cloud<'a> {
 mod tests {
     use super::*;
 
-    /// Points on a jittered lattice over a few metres, seen from two cameras.
+    /// Points scattered over a few metres, seen from two cameras.
     fn scattered() -> (Vec<MapPoint>, Vec<Vector3<f64>>) {
         let cameras = vec![Vector3::new(-1.0, 0.5, 1.2), Vector3::new(6.0, 4.0, 1.0)];
-        let mut state = 7u64;
-        let mut next = || {
-            state = state
-                .wrapping_mul(6_364_136_223_846_793_005)
-                .wrapping_add(1);
-            (state >> 33) as f64 / (1u64 << 31) as f64
-        };
+        let mut random = crate::wall_points::SplitMix(7);
+        let mut next = || random.below(1_000_000) as f64 / 1e6;
         let points = (0..4000)
             .map(|i| MapPoint {
                 position: Vector3::new(next() * 5.0 - 0.2, next() * 4.0 - 1.0, next() * 2.5),
