@@ -9,6 +9,7 @@ use vsgraphs_eval::scenario::{DictionaryChoice, ScenarioOptions};
 use vsgraphs_eval::score::{self, Metric};
 use vsgraphs_eval::semantics::{self, MapAlignment};
 use vsgraphs_optim::factors::pose::PoseError;
+use vsgraphs_optim::g2o::Start;
 use vsgraphs_optim::{Method, Options};
 use vsgraphs_pipeline::PipelineConfig;
 use vsgraphs_proto::model::BuildingModel;
@@ -19,6 +20,13 @@ use vsgraphs_sim::scenarios::Scenario;
 struct Cli {
     #[command(subcommand)]
     command: Command,
+}
+
+#[derive(Clone, Copy, ValueEnum)]
+enum StartArg {
+    File,
+    Chain,
+    Chordal,
 }
 
 #[derive(Clone, Copy, ValueEnum)]
@@ -191,6 +199,10 @@ enum Command {
         error: ErrorArg,
         #[arg(long, value_enum, default_value = "lm")]
         method: MethodArg,
+        /// Where the poses start: the file's values, chained along the edges (odometry
+        /// compounded), or the chordal relaxation (rotations, then translations).
+        #[arg(long, value_enum, default_value = "file")]
+        start: StartArg,
         #[arg(long, default_value_t = 100)]
         max_iterations: usize,
         /// Threads for large problems (0: one per core).
@@ -297,6 +309,7 @@ fn main() -> anyhow::Result<()> {
             output,
             error,
             method,
+            start,
             max_iterations,
             threads,
             json,
@@ -314,7 +327,12 @@ fn main() -> anyhow::Result<()> {
                 ErrorArg::Quaternion => PoseError::Quaternion,
                 ErrorArg::LogMap => PoseError::LogMap,
             };
-            let run = posegraph::run(&input, output.as_deref(), error, options)?;
+            let start = match start {
+                StartArg::File => Start::File,
+                StartArg::Chain => Start::Chain,
+                StartArg::Chordal => Start::Chordal,
+            };
+            let run = posegraph::run(&input, output.as_deref(), error, start, options)?;
             if json {
                 println!("{}", serde_json::to_string_pretty(&run)?);
             } else {

@@ -4,7 +4,7 @@ use serde::Serialize;
 use std::path::Path;
 use std::time::{Duration, Instant};
 use vsgraphs_optim::factors::pose::PoseError;
-use vsgraphs_optim::g2o::PoseGraph;
+use vsgraphs_optim::g2o::{PoseGraph, Start};
 use vsgraphs_optim::{Options, Solver};
 
 #[derive(Debug, Serialize)]
@@ -26,6 +26,10 @@ pub struct PoseGraphRun {
     pub edges: usize,
     /// "quaternion" (g2o's chi2) or "log-map".
     pub error: &'static str,
+    /// Where the poses started: "file", "chain" or "chordal".
+    pub start: &'static str,
+    /// Time to compute the start (0 for "file").
+    pub start_ms: f64,
     pub initial_cost: f64,
     pub final_cost: f64,
     pub termination: String,
@@ -40,17 +44,22 @@ fn ms(d: Duration) -> f64 {
     d.as_secs_f64() * 1e3
 }
 
-/// Reads `input`, optimises it and (when `output` is given) writes the optimised graph.
+/// Reads `input`, starts its poses at `start`, optimises it and (when `output` is given)
+/// writes the optimised graph.
 pub fn run(
     input: &Path,
     output: Option<&Path>,
     error: PoseError,
+    start: Start,
     options: Options,
 ) -> anyhow::Result<PoseGraphRun> {
     let t = Instant::now();
     let mut graph = PoseGraph::read(input)?;
-    let (mut problem, keys) = graph.to_problem(error)?;
     let read_ms = ms(t.elapsed());
+    let t = Instant::now();
+    graph.restart(start)?;
+    let start_ms = ms(t.elapsed());
+    let (mut problem, keys) = graph.to_problem(error)?;
     let mut solver = Solver::new(options);
     let report = solver.solve(&mut problem)?;
     if let Some(path) = output {
@@ -66,6 +75,12 @@ pub fn run(
             PoseError::Quaternion => "quaternion",
             PoseError::LogMap => "log-map",
         },
+        start: match start {
+            Start::File => "file",
+            Start::Chain => "chain",
+            Start::Chordal => "chordal",
+        },
+        start_ms,
         initial_cost: report.initial_cost,
         final_cost: report.final_cost,
         termination: format!("{:?}", report.termination),
@@ -93,8 +108,8 @@ pub fn run(
 /// The readable table.
 pub fn print_table(run: &PoseGraphRun) {
     println!(
-        "{} vertices, {} edges, {} error; read in {:.1} ms",
-        run.vertices, run.edges, run.error, run.read_ms
+        "{} vertices, {} edges, {} error; read in {:.1} ms; start {} ({:.1} ms)",
+        run.vertices, run.edges, run.error, run.read_ms, run.start, run.start_ms
     );
     println!(
         "{:>4} {:>16} {:>16} {:>10} {:>10} {:>3} {:>9} {:>9} {:>10}",

@@ -69,3 +69,28 @@ fn a_missing_file_is_a_clear_error() {
         "{stderr}"
     );
 }
+
+#[test]
+fn starts_from_chained_odometry_or_the_chordal_relaxation() {
+    let Some(input) = small_grid() else { return };
+    let mut initial = Vec::new();
+    for start in ["chain", "chordal"] {
+        let run = Command::new(env!("CARGO_BIN_EXE_vsgraphs-eval"))
+            .args(["posegraph", "--json", "--start", start])
+            .arg(&input)
+            .output()
+            .unwrap();
+        assert!(
+            run.status.success(),
+            "{}",
+            String::from_utf8_lossy(&run.stderr)
+        );
+        let report: serde_json::Value = serde_json::from_slice(&run.stdout).unwrap();
+        assert_eq!(report["start"], start);
+        initial.push(report["initial_cost"].as_f64().unwrap());
+        let final_cost = report["final_cost"].as_f64().unwrap();
+        assert!((final_cost - 458.154).abs() < 1e-3, "{start}: {final_cost}");
+    }
+    // The chordal start is far nearer the optimum than odometry compounded.
+    assert!(initial[1] < 0.1 * initial[0], "{initial:?}");
+}

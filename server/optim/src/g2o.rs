@@ -2,6 +2,7 @@
 //! `EDGE_SE3:QUAT i j x y z qx qy qz qw` followed by the 21 upper-triangular entries of the 6×6
 //! information matrix (translation first), and `FIX id`.
 
+use crate::chordal::{self, ChordalError, Relative};
 use crate::factor::{Information, InformationError};
 use crate::factors::pose::{BetweenFactor, PoseError};
 use crate::lie::Se3;
@@ -29,6 +30,19 @@ pub enum G2oError {
     },
     #[error("building the problem: {0}")]
     Problem(#[from] ProblemError),
+    #[error("starting poses: {0}")]
+    Start(#[from] ChordalError),
+}
+
+/// Where a graph's poses start before it is optimised.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Start {
+    /// As the file gives them.
+    File,
+    /// Chained from the fixed pose along the edges in the file's order (odometry compounded).
+    Chain,
+    /// The chordal relaxation's rotations, then translations ([`crate::chordal`]).
+    Chordal,
 }
 
 #[derive(Clone, Debug)]
@@ -174,24 +188,71 @@ impl PoseGraph {
         Ok(graph)
     }
 
-    /// The problem of this graph: one pose per vertex, one [`BetweenFactor`] per edge. The
-    /// vertices named by `FIX` are held fixed, or the first vertex when none is (the gauge).
-    pub fn to_problem(&self, error: PoseError) -> Result<(Problem, Vec<Key<Se3>>), G2oError> {
-        let mut values = Values::new();
-        let keys: Vec<Key<Se3>> = self.vertices.iter().map(|(_, p)| values.add(*p)).collect();
-        let index: HashMap<u64, usize> = self
-            .vertices
+    fn index(&self) -> HashMap<u64, usize> {
+        self.vertices
             .iter()
             .enumerate()
             .map(|(i, (id, _))| (*id, i))
-            .collect();
+            .collect()
+    }
+
+    /// Per vertex, whether it is held fixed: the vertices named by `FIX`, or the first vertex
+    /// when none is (the gauge).
+    pub fn anchored(&self) -> Vec<bool> {
+        let index = self.index();
+        let mut anchored = vec![false; self.vertices.len()];
         if self.fixed.is_empty() {
-            if let Some(first) = keys.first() {
-                values.set_fixed(first.id, true);
+            if let Some(first) = anchored.first_mut() {
+                *first = true;
             }
         }
         for v in &self.fixed {
-            values.set_fixed(keys[index[v]].id, true);
+            anchored[index[v]] = true;
+        }
+        anchored
+    }
+
+    /// The edges as the chordal initialisation takes them: the rotation weight is the mean of
+    /// the rotation information's diagonal.
+    pub fn relatives(&self) -> Vec<Relative> {
+        let index = self.index();
+        self.edges
+            .iter()
+            .map(|e| Relative {
+                from: index[&e.from],
+                to: index[&e.to],
+                measured: e.measured,
+                rotation_weight: e.information.fixed_view::<3, 3>(3, 3).trace() / 3.0,
+                translation_information: e.information.fixed_view::<3, 3>(0, 0).into_owned(),
+            })
+            .collect()
+    }
+
+    /// Replaces the poses of the vertices that are not fixed with the `start` ones.
+    pub fn restart(&mut self, start: Start) -> Result<(), G2oError> {
+        let poses: Vec<Se3> = self.vertices.iter().map(|(_, p)| *p).collect();
+        let anchored = self.anchored();
+        let started = match start {
+            Start::File => return Ok(()),
+            Start::Chain => chordal::chain(&poses, &anchored, &self.relatives())?,
+            Start::Chordal => chordal::initialise(&poses, &anchored, &self.relatives())?,
+        };
+        for ((_, pose), p) in self.vertices.iter_mut().zip(started) {
+            *pose = p;
+        }
+        Ok(())
+    }
+
+    /// The problem of this graph: one pose per vertex, one [`BetweenFactor`] per edge, the
+    /// [`PoseGraph::anchored`] vertices held fixed.
+    pub fn to_problem(&self, error: PoseError) -> Result<(Problem, Vec<Key<Se3>>), G2oError> {
+        let mut values = Values::new();
+        let keys: Vec<Key<Se3>> = self.vertices.iter().map(|(_, p)| values.add(*p)).collect();
+        let index = self.index();
+        for (key, anchored) in keys.iter().zip(self.anchored()) {
+            if anchored {
+                values.set_fixed(key.id, true);
+            }
         }
         let mut problem = Problem::new(values);
         for e in &self.edges {

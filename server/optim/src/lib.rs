@@ -7,6 +7,7 @@
 
 mod bundle;
 pub mod camera;
+pub mod chordal;
 pub mod factor;
 pub mod factors;
 // SIMD lanes (AVX2 + FMA intrinsics behind runtime detection).
