@@ -159,6 +159,10 @@ enum Command {
         /// Which robot's walk (index into the scenario's routes).
         #[arg(long, default_value_t = 0)]
         robot: usize,
+        /// Every robot of the scenario, one after the other, into one server's maps, which are
+        /// then merged where they share markers; scored together (one alignment for all).
+        #[arg(long, conflicts_with = "robot")]
+        all_robots: bool,
         /// Stop after this many frames.
         #[arg(long)]
         limit: Option<usize>,
@@ -260,6 +264,7 @@ fn main() -> anyhow::Result<()> {
         Command::Scenario {
             scenario,
             robot,
+            all_robots,
             limit,
             seed,
             config,
@@ -281,6 +286,32 @@ fn main() -> anyhow::Result<()> {
                 realtime,
                 ..ScenarioOptions::default()
             };
+            if all_robots {
+                let run = vsgraphs_eval::scenario::run_together(
+                    &config,
+                    &scenario,
+                    &options,
+                    |robot, done, total| {
+                        if done % 250 == 0 || done == total {
+                            eprintln!("robot {robot}: {done}/{total} frames");
+                        }
+                    },
+                )?;
+                if let Some(dir) = out {
+                    std::fs::create_dir_all(&dir)
+                        .with_context(|| format!("creating {}", dir.display()))?;
+                    std::fs::write(
+                        dir.join("model.json"),
+                        serde_json::to_string_pretty(&run.model)?,
+                    )?;
+                }
+                if json {
+                    println!("{}", serde_json::to_string_pretty(&run)?);
+                } else {
+                    vsgraphs_eval::scenario::print_together(&run);
+                }
+                return Ok(());
+            }
             let run = vsgraphs_eval::scenario::run(&config, &scenario, &options, |done, total| {
                 if done % 250 == 0 || done == total {
                     eprintln!("{done}/{total} frames");

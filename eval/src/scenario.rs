@@ -12,15 +12,18 @@ use serde::Serialize;
 use std::sync::mpsc;
 use std::time::Duration;
 use vsgraphs_datasets::Trajectory;
-use vsgraphs_pipeline::offline::{self, FrameSource, OfflineFrame, OfflineSummary};
+use vsgraphs_pipeline::maps::MapService;
+use vsgraphs_pipeline::offline::{self, FrameSource, OfflineFrame, OfflineSummary, Trajectories};
 use vsgraphs_pipeline::PipelineConfig;
 use vsgraphs_proto::model::BuildingModel;
 use vsgraphs_proto::DepthEncoding;
 use vsgraphs_semantics::Dictionary;
 use vsgraphs_sim::scenarios::Scenario;
 use vsgraphs_sim::sequence::render_frame;
+use vsgraphs_sim::walk::Walk;
 use vsgraphs_sim::wire::{camera_model, encode_frame, DEPTH_SCALE};
 use vsgraphs_sim::{Building, Renderer};
+use vsgraphs_slam::MapId;
 
 #[derive(Clone, Debug)]
 pub struct ScenarioOptions {
@@ -145,66 +148,21 @@ pub fn run(
     let total = options
         .limit
         .map_or(walk.times.len(), |l| l.min(walk.times.len()));
-    let camera = camera_model(&renderer);
     let reference = walk.trajectory(0.0, total);
     let truth: BuildingModel = serde_json::from_str(&building.ground_truth_json())
         .context("reading the building's ground truth as a model")?;
-    // The semantic dictionary the simulator writes for the building, as a robot's operator
-    // would give the server.
-    let written = match options.dictionary {
-        DictionaryChoice::V1 => Some(building.dictionary_v1()),
-        DictionaryChoice::V2 => Some(building.dictionary_v2()),
-        DictionaryChoice::None => None,
-    };
-    let dictionary = written
-        .map(|json| Dictionary::parse(&json.to_string()))
-        .transpose()
-        .map_err(|e| anyhow::anyhow!("the building's dictionary: {e}"))?;
+    let dictionary = dictionary_for(&building, options.dictionary)?;
 
-    // Frames are rendered and encoded on another thread, a few ahead of the pipeline.
-    let (sender, receiver) = mpsc::sync_channel::<Result<OfflineFrame, String>>(4);
-    let (summary, poses) = std::thread::scope(|scope| {
-        let (renderer, walk) = (&renderer, &walk);
-        let quality = options.jpeg_quality;
-        let realtime = options.realtime;
-        scope.spawn(move || {
-            // At a robot's pace the renderer stands for the robot, whose computer is not the
-            // server's: it takes the cores the pipeline leaves idle (a failure to lower its
-            // priority only makes the times worse).
-            if realtime {
-                let _ = rustix::process::nice(19);
-            }
-            for i in 0..total {
-                let frame = render_frame(renderer, walk, i);
-                let encoded = encode_frame(&frame, quality, DepthEncoding::Rvl)
-                    .map(|(colour, depth)| OfflineFrame {
-                        timestamp_ns: (walk.times[i] * 1e9).round() as u64,
-                        colour,
-                        depth,
-                    })
-                    .map_err(|e| format!("encoding frame {i}: {e}"));
-                if sender.send(encoded).is_err() {
-                    return;
-                }
-            }
-        });
-        let source = FrameSource {
-            camera: &camera,
-            depth_scale: DEPTH_SCALE,
-            total,
-            dictionary: dictionary.as_ref(),
-        };
-        // At a robot's pace: each frame no sooner than its time in the walk after the first.
-        let started = std::time::Instant::now();
-        let first_ns = (walk.times.first().copied().unwrap_or(0.0) * 1e9).round() as u64;
-        let paced = receiver.into_iter().inspect(|frame| {
-            if let (true, Ok(frame)) = (options.realtime, frame) {
-                let due = Duration::from_nanos(frame.timestamp_ns.saturating_sub(first_ns));
-                std::thread::sleep(due.saturating_sub(started.elapsed()));
-            }
-        });
-        offline::run_frames(config, source, paced, progress)
-    })?;
+    let (summary, poses) = run_walk(
+        config,
+        &renderer,
+        &walk,
+        total,
+        options,
+        dictionary.as_ref(),
+        None,
+        progress,
+    )?;
 
     let last_map = poses.refined.last().map(|p| p.map);
     let in_last_map = |poses: &[vsgraphs_proto::api::TrajectoryPose]| {
@@ -235,23 +193,7 @@ pub fn run(
         .find(|v| Some(v.map) == last_map)
         .map(vsgraphs_pipeline::model::building_model)
         .unwrap_or_default();
-    // The map's frame is the trajectory's: aligning the walk aligns the map without the
-    // markers' own errors.
-    let (semantics, semantics_error) = match trajectory_alignment(&reference, &estimate) {
-        Some(rigid) => (
-            Some(semantics::score_with(
-                &truth,
-                &model,
-                &rigid,
-                &Gates::default(),
-            )),
-            None,
-        ),
-        None => match semantics::score(&truth, &model, MapAlignment::Markers, &Gates::default()) {
-            Ok(report) => (Some(report), None),
-            Err(e) => (None, Some(e.to_string())),
-        },
-    };
+    let (semantics, semantics_error) = score_model(&truth, &model, &reference, &estimate);
     Ok(ScenarioRun {
         robot: walk.robot.clone(),
         frames: summary.frames,
@@ -272,6 +214,343 @@ pub fn run(
         estimate_as_tracked,
         reference,
     })
+}
+
+/// One walk rendered (on another thread, a few frames ahead), encoded as the robot sends it
+/// and run through the pipeline, into `maps` when given (else a service of its own).
+#[allow(clippy::too_many_arguments)]
+fn run_walk(
+    config: &PipelineConfig,
+    renderer: &Renderer,
+    walk: &Walk,
+    total: usize,
+    options: &ScenarioOptions,
+    dictionary: Option<&Dictionary>,
+    maps: Option<&MapService>,
+    progress: impl FnMut(usize, usize),
+) -> anyhow::Result<(OfflineSummary, Trajectories)> {
+    let camera = camera_model(renderer);
+    let (sender, receiver) = mpsc::sync_channel::<Result<OfflineFrame, String>>(4);
+    std::thread::scope(|scope| {
+        let quality = options.jpeg_quality;
+        let realtime = options.realtime;
+        scope.spawn(move || {
+            // At a robot's pace the renderer stands for the robot, whose computer is not the
+            // server's: it takes the cores the pipeline leaves idle (a failure to lower its
+            // priority only makes the times worse).
+            if realtime {
+                let _ = rustix::process::nice(19);
+            }
+            for i in 0..total {
+                let frame = render_frame(renderer, walk, i);
+                let encoded = encode_frame(&frame, quality, DepthEncoding::Rvl)
+                    .map(|(colour, depth)| OfflineFrame {
+                        timestamp_ns: (walk.times[i] * 1e9).round() as u64,
+                        colour,
+                        depth,
+                    })
+                    .map_err(|e| format!("encoding frame {i}: {e}"));
+                if sender.send(encoded).is_err() {
+                    return;
+                }
+            }
+        });
+        let source = FrameSource {
+            camera: &camera,
+            depth_scale: DEPTH_SCALE,
+            total,
+            dictionary,
+            maps,
+        };
+        // At a robot's pace: each frame no sooner than its time in the walk after the first.
+        let started = std::time::Instant::now();
+        let first_ns = (walk.times.first().copied().unwrap_or(0.0) * 1e9).round() as u64;
+        let paced = receiver.into_iter().inspect(|frame| {
+            if let (true, Ok(frame)) = (options.realtime, frame) {
+                let due = Duration::from_nanos(frame.timestamp_ns.saturating_sub(first_ns));
+                std::thread::sleep(due.saturating_sub(started.elapsed()));
+            }
+        });
+        offline::run_frames(config, source, paced, progress)
+    })
+}
+
+/// A robot's part in a run of every robot of a scenario.
+#[derive(Debug, Serialize)]
+pub struct RobotPart {
+    pub robot: String,
+    pub frames: usize,
+    pub tracked: usize,
+    /// Maps the robot started.
+    pub maps: usize,
+    /// ATE RMSE of the robot alone: its trajectory in the last map it made, before any merge,
+    /// aligned on its own, metres.
+    pub ate_alone_rmse: Option<f64>,
+    /// Its poses in the map the run ends with (after the merges).
+    pub in_final_map: usize,
+}
+
+/// One merge of the run.
+#[derive(Debug, Serialize)]
+pub struct MergeRow {
+    pub target: u32,
+    pub source: u32,
+    /// Shared markers that agreed, and those that did not (with their corners' RMS, m).
+    pub markers: Vec<i32>,
+    pub disagreeing: Vec<(i32, f64)>,
+    /// Markers at their place but turned in one of the maps.
+    pub turned: Vec<i32>,
+    pub marker_rms_m: f64,
+    /// Points of the source found in the target where the alignment puts them.
+    pub point_inliers: usize,
+    pub fused_markers: usize,
+    pub new_markers: usize,
+    /// Points of the seam made one.
+    pub fused_points: usize,
+    /// The whole-map optimisation after the merge: whether it was applied, and the largest
+    /// move of a keyframe, metres.
+    pub optimised: Option<bool>,
+    pub moved_max_m: Option<f64>,
+}
+
+/// Every robot of a scenario, one after the other, mapping into one server's maps; the maps
+/// are then merged where they share markers and scored as one.
+#[derive(Debug, Serialize)]
+pub struct TogetherRun {
+    pub robots: Vec<RobotPart>,
+    pub merges: Vec<MergeRow>,
+    /// Pairs of maps not merged, and why.
+    pub not_merged: Vec<(u32, u32, String)>,
+    /// Maps left at the end.
+    pub maps: usize,
+    /// The map with the most keyframes at the end, which is scored.
+    pub final_map: Option<u32>,
+    /// ATE of every robot's poses in the final map, with one alignment for all.
+    pub ate: Option<Report>,
+    pub semantics: Option<SemanticReport>,
+    pub semantics_error: Option<String>,
+    #[serde(skip)]
+    pub model: BuildingModel,
+}
+
+/// Stamps of robot `r` are moved this far apart from the others', seconds, so that one
+/// trajectory holds every robot's poses without two sharing a stamp.
+const ROBOT_STAMP_OFFSET_S: f64 = 1e5;
+
+fn shifted(trajectory: &Trajectory, by: f64, into: &mut Trajectory) {
+    for (stamp, pose) in trajectory.stamps.iter().zip(&trajectory.poses) {
+        into.push(stamp + by, *pose);
+    }
+}
+
+/// Runs every robot of `scenario` (see [`TogetherRun`]); `progress(robot, done, total)`.
+pub fn run_together(
+    config: &PipelineConfig,
+    scenario: &Scenario,
+    options: &ScenarioOptions,
+    mut progress: impl FnMut(usize, usize, usize),
+) -> anyhow::Result<TogetherRun> {
+    let building = Building::from_plan(&scenario.plan).context("building the plan")?;
+    let renderer = Renderer::new(
+        &scenario.plan,
+        &building,
+        scenario.render.clone(),
+        options.seed,
+    );
+    let walks = scenario.walks().context("planning the walks")?;
+    let truth: BuildingModel = serde_json::from_str(&building.ground_truth_json())
+        .context("reading the building's ground truth as a model")?;
+    let dictionary = dictionary_for(&building, options.dictionary)?;
+    let service = MapService::with_semantics(config.semantics.enabled, dictionary.clone())
+        .with_whole_map_optimisation(config.semantics.optimise_every_keyframes);
+    let mut runs = Vec::new();
+    for (r, walk) in walks.iter().enumerate() {
+        let total = options
+            .limit
+            .map_or(walk.times.len(), |l| l.min(walk.times.len()));
+        let (summary, poses) = run_walk(
+            config,
+            &renderer,
+            walk,
+            total,
+            options,
+            dictionary.as_ref(),
+            Some(&service),
+            |done, total| progress(r, done, total),
+        )?;
+        let reference = walk.trajectory(0.0, total);
+        let last_map = poses.refined.last().map(|p| p.map);
+        let alone: Vec<_> = poses
+            .refined
+            .iter()
+            .filter(|p| Some(p.map) == last_map)
+            .copied()
+            .collect();
+        let alone = offline::trajectory(&alone);
+        let ate_alone_rmse = (alone.len() >= 3)
+            .then(|| score::score(&reference, &alone, Metric::Ape, &Compare::default()))
+            .transpose()?
+            .map(|r| r.stats.rmse);
+        runs.push((
+            walk.robot.clone(),
+            summary,
+            poses,
+            reference,
+            ate_alone_rmse,
+        ));
+    }
+    // Every pair of maps, the older as the target, until no more merge.
+    let mut merges = Vec::new();
+    let mut not_merged = Vec::new();
+    let mut tried = std::collections::HashSet::new();
+    'again: loop {
+        let ids: Vec<MapId> = service.all().into_iter().map(|(id, _)| id).collect();
+        for (i, &target) in ids.iter().enumerate() {
+            for &source in &ids[i + 1..] {
+                if !tried.insert((target, source)) {
+                    continue;
+                }
+                match service.merge(target, source) {
+                    Ok(report) => {
+                        let o = &report.outcome;
+                        merges.push(MergeRow {
+                            target: target.0,
+                            source: source.0,
+                            markers: o.alignment.markers.clone(),
+                            disagreeing: o.alignment.disagreeing.clone(),
+                            turned: o.alignment.turned.clone(),
+                            marker_rms_m: o.alignment.marker_rms_m,
+                            point_inliers: o.alignment.point_inliers,
+                            fused_markers: o.absorbed.fused_markers.len(),
+                            new_markers: o.absorbed.new_markers.len(),
+                            fused_points: o.absorbed.fused_points,
+                            optimised: o.whole_map.as_ref().map(|w| w.applied),
+                            moved_max_m: o.whole_map.as_ref().map(|w| w.moved_max_m),
+                        });
+                        continue 'again;
+                    }
+                    Err(e) => not_merged.push((target.0, source.0, e.to_string())),
+                }
+            }
+        }
+        break;
+    }
+    let final_map = service
+        .all()
+        .into_iter()
+        .max_by_key(|(id, s)| (s.latest().keyframe_count, std::cmp::Reverse(*id)))
+        .map(|(id, _)| id);
+    let mut estimate = Trajectory::default();
+    let mut reference = Trajectory::default();
+    let mut robots = Vec::new();
+    for (r, (robot, summary, poses, walk_reference, ate_alone_rmse)) in runs.iter().enumerate() {
+        let by = r as f64 * ROBOT_STAMP_OFFSET_S;
+        let kept: Vec<_> = offline::refined_after_merges(&service, summary, poses)
+            .into_iter()
+            .filter(|p| Some(MapId(p.map)) == final_map)
+            .collect();
+        shifted(&offline::trajectory(&kept), by, &mut estimate);
+        shifted(walk_reference, by, &mut reference);
+        robots.push(RobotPart {
+            robot: robot.clone(),
+            frames: summary.frames,
+            tracked: summary.tracked,
+            maps: summary.maps,
+            ate_alone_rmse: *ate_alone_rmse,
+            in_final_map: kept.len(),
+        });
+    }
+    let ate = (estimate.len() >= 3)
+        .then(|| score::score(&reference, &estimate, Metric::Ape, &Compare::default()))
+        .transpose()?;
+    let model = final_map
+        .and_then(|id| service.snapshot(id))
+        .map(|view| vsgraphs_pipeline::model::building_model(&view))
+        .unwrap_or_default();
+    let (semantics, semantics_error) = score_model(&truth, &model, &reference, &estimate);
+    Ok(TogetherRun {
+        robots,
+        merges,
+        not_merged,
+        maps: service.len(),
+        final_map: final_map.map(|id| id.0),
+        ate,
+        semantics,
+        semantics_error,
+        model,
+    })
+}
+
+pub fn print_together(run: &TogetherRun) {
+    for r in &run.robots {
+        println!(
+            "robot {}: {} frames, {} tracked, {} map(s); ATE alone {}; {} poses in the final map",
+            r.robot,
+            r.frames,
+            r.tracked,
+            r.maps,
+            r.ate_alone_rmse
+                .map_or("-".to_owned(), |a| format!("{a:.4} m")),
+            r.in_final_map
+        );
+    }
+    for m in &run.merges {
+        println!(
+            "merged map {} into map {}: markers {:?} at one place ({:.3} m RMS; turned in one map: \
+             {:?}), {:?} not; {} points confirm; {} markers fused, {} new, {} points fused; \
+             whole map optimised: {:?}, moved at most {:?} m",
+            m.source,
+            m.target,
+            m.markers,
+            m.marker_rms_m,
+            m.turned,
+            m.disagreeing,
+            m.point_inliers,
+            m.fused_markers,
+            m.new_markers,
+            m.fused_points,
+            m.optimised,
+            m.moved_max_m
+        );
+    }
+    for (target, source, why) in &run.not_merged {
+        println!("map {source} not merged into map {target}: {why}");
+    }
+    println!(
+        "{} map(s) at the end; scored: {:?}",
+        run.maps, run.final_map
+    );
+    println!();
+    match &run.ate {
+        Some(report) => score::print_table(report),
+        None => println!("ATE: fewer than 3 poses in the final map"),
+    }
+    println!();
+    print_semantics(run.semantics.as_ref(), run.semantics_error.as_deref());
+}
+
+fn print_semantics(report: Option<&SemanticReport>, error: Option<&str>) {
+    match report {
+        Some(report) => semantics::print_table(report),
+        None => println!("semantics: not scored: {}", error.unwrap_or("?")),
+    }
+}
+
+/// The semantic dictionary the simulator writes for the building, as a robot's operator would
+/// give the server.
+fn dictionary_for(
+    building: &Building,
+    choice: DictionaryChoice,
+) -> anyhow::Result<Option<Dictionary>> {
+    let written = match choice {
+        DictionaryChoice::V1 => Some(building.dictionary_v1()),
+        DictionaryChoice::V2 => Some(building.dictionary_v2()),
+        DictionaryChoice::None => None,
+    };
+    written
+        .map(|json| Dictionary::parse(&json.to_string()))
+        .transpose()
+        .map_err(|e| anyhow::anyhow!("the building's dictionary: {e}"))
 }
 
 fn medians(s: &OfflineSummary) -> StageMedians {
@@ -327,9 +606,32 @@ pub fn print_table(run: &ScenarioRun) {
         None => println!("ATE: fewer than 3 tracked poses"),
     }
     println!();
-    match (&run.semantics, &run.semantics_error) {
-        (Some(report), _) => semantics::print_table(report),
-        (None, e) => println!("semantics: not scored: {}", e.as_deref().unwrap_or("?")),
+    print_semantics(run.semantics.as_ref(), run.semantics_error.as_deref());
+}
+
+/// The map's model scored against the building, or why it could not be. The map's frame is
+/// the trajectory's: aligning the walk aligns the map without the markers' own errors (by the
+/// markers when there are too few poses).
+fn score_model(
+    truth: &BuildingModel,
+    model: &BuildingModel,
+    reference: &Trajectory,
+    estimate: &Trajectory,
+) -> (Option<SemanticReport>, Option<String>) {
+    match trajectory_alignment(reference, estimate) {
+        Some(rigid) => (
+            Some(semantics::score_with(
+                truth,
+                model,
+                &rigid,
+                &Gates::default(),
+            )),
+            None,
+        ),
+        None => match semantics::score(truth, model, MapAlignment::Markers, &Gates::default()) {
+            Ok(report) => (Some(report), None),
+            Err(e) => (None, Some(e.to_string())),
+        },
     }
 }
 

@@ -257,7 +257,8 @@ pub fn routes(name: &str) -> Option<Vec<Route>> {
             ],
         ),
         // Each robot enters the hall by its own door and keeps to its half: both see the
-        // south and north walls, only one the west wall, only the other the east wall.
+        // south and north walls, only one the west wall, only the other the east wall. Both
+        // walk the middle of the corridor, whose markers tell where their maps meet.
         "two_robots" => vec![
             route(
                 "robot-1",
@@ -292,7 +293,8 @@ pub fn routes(name: &str) -> Option<Vec<Route>> {
                             [9.5, 4.0],
                         ]),
                     ),
-                    visit("Corridor", Points(vec![[15.0, 1.0]])),
+                    // Back along the corridor past the middle, where robot-1 mapped too.
+                    visit("Corridor", Points(vec![[5.5, 1.0], [15.0, 1.0]])),
                 ],
             ),
         ],

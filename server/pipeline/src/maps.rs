@@ -19,9 +19,11 @@ use std::sync::{mpsc, Arc, Mutex, MutexGuard, RwLock};
 use std::thread::JoinHandle;
 use vsgraphs_proto::api::MapView;
 use vsgraphs_semantics::{Dictionary, SemanticMap};
+use vsgraphs_slam::local_mapping::{MergeOutcome, PointStatistics};
 use vsgraphs_slam::walls::WallPrior;
 use vsgraphs_slam::{
-    LocalMapper, Map, MapId, MapReply, MapRequest, MapWriter, MappingConfig, SharedMap, TrackError,
+    KeyFrameId, LocalMapper, Map, MapId, MapReply, MapRequest, MapWriter, MappingConfig, SharedMap,
+    TrackError,
 };
 
 /// Every map of the server. Cloning gives another handle to the same service.
@@ -34,7 +36,25 @@ pub struct MapService {
 struct Inner {
     next_id: AtomicU32,
     maps: Mutex<BTreeMap<MapId, Arc<MapEntry>>>,
+    /// Maps merged into others, and where their keyframes went.
+    merged: Mutex<BTreeMap<MapId, Merged>>,
     semantics: Arc<RwLock<Semantics>>,
+}
+
+/// Where a merged map went: its keyframe `k` is keyframe `k + keyframe_offset` of `into`.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Merged {
+    pub into: MapId,
+    pub keyframe_offset: u32,
+    pub into_from_merged: vsgraphs_slam::Se3,
+}
+
+/// What [`MapService::merge`] did.
+#[derive(Clone, Debug)]
+pub struct MergeReport {
+    pub target: MapId,
+    pub source: MapId,
+    pub outcome: MergeOutcome,
 }
 
 /// The semantic layer's settings, which every writer reads at each request.
@@ -110,6 +130,11 @@ enum Command {
     },
     /// Rebuild the semantic layer: its settings changed.
     Refresh,
+    /// Join another map, whose writer has stopped, to this one.
+    Absorb {
+        source: Arc<SharedMap>,
+        reply: mpsc::SyncSender<Result<MergeOutcome, Failure>>,
+    },
 }
 
 /// Why a request has no reply: an error, or a panic in the writer, handed back to the robot's
@@ -227,6 +252,107 @@ impl MapService {
         }
     }
 
+    /// Joins map `source` to map `target`, when the markers both hold agree on where one lies in
+    /// the other ([`vsgraphs_slam::merge`]): `source`'s writer lands what it has pending and
+    /// stops, `target`'s moves its keyframes, points and markers in and optimises the whole
+    /// map, and `source` leaves the service ([`MapService::merged`] says where it went). Maps
+    /// that do not align are left as they were. A robot still tracking in `source` cannot map
+    /// there any more (it is told the writer stopped); robots are not moved to `target` yet.
+    pub fn merge(&self, target: MapId, source: MapId) -> Result<MergeReport, TrackError> {
+        if target == source {
+            return Err(TrackError::Writer(format!(
+                "map {} cannot be merged into itself",
+                source.0
+            )));
+        }
+        let (into, from) = (self.entry(target)?, self.entry(source)?);
+        // Checked before anything stops, so that maps that do not align stay as they are.
+        vsgraphs_slam::merge::align_by_markers(&into.map.read(), &from.map.read())?;
+        Self::ask(&from, MapRequest::Flush(PointStatistics::default()))?;
+        lock(&from.commands).take();
+        if let Some(thread) = lock(&from.thread).take() {
+            let _ = thread.join();
+        }
+        let (reply, answer) = mpsc::sync_channel(1);
+        let sent = lock(&into.commands).as_ref().is_some_and(|commands| {
+            commands
+                .send(Command::Absorb {
+                    source: from.map.clone(),
+                    reply,
+                })
+                .is_ok()
+        });
+        if !sent {
+            return Err(TrackError::Writer(
+                "the target map's writer has stopped".into(),
+            ));
+        }
+        let outcome = match answer.recv() {
+            Ok(Ok(outcome)) => outcome,
+            Ok(Err(Failure::Error(e))) => return Err(e),
+            Ok(Err(Failure::Panic(payload))) => std::panic::resume_unwind(payload),
+            Err(_) => {
+                return Err(TrackError::Writer(
+                    "the target map's writer stopped before answering".into(),
+                ))
+            }
+        };
+        let record = Merged {
+            into: target,
+            keyframe_offset: outcome.absorbed.keyframe_offset,
+            into_from_merged: outcome.absorbed.target_from_source,
+        };
+        lock(&self.inner.merged).insert(source, record);
+        lock(&self.inner.maps).remove(&source);
+        tracing::info!(
+            target = target.0,
+            source = source.0,
+            markers = ?outcome.alignment.markers,
+            marker_rms_m = outcome.alignment.marker_rms_m,
+            point_inliers = outcome.alignment.point_inliers,
+            "maps merged"
+        );
+        Ok(MergeReport {
+            target,
+            source,
+            outcome,
+        })
+    }
+
+    /// Where a merged map went (`None` for a map that was not merged).
+    pub fn merged(&self, id: MapId) -> Option<Merged> {
+        lock(&self.inner.merged).get(&id).copied()
+    }
+
+    /// The map and keyframe that keyframe `keyframe` of map `map` is now, following merges.
+    pub fn resolve(&self, mut map: MapId, mut keyframe: KeyFrameId) -> (MapId, KeyFrameId) {
+        let merged = lock(&self.inner.merged);
+        while let Some(m) = merged.get(&map) {
+            map = m.into;
+            keyframe = KeyFrameId(keyframe.0 + m.keyframe_offset);
+        }
+        (map, keyframe)
+    }
+
+    /// Runs `request` on `entry`'s writer and waits for the answer.
+    fn ask(entry: &MapEntry, request: MapRequest) -> Result<MapReply, TrackError> {
+        let (reply, answer) = mpsc::sync_channel(1);
+        let sent = lock(&entry.commands)
+            .as_ref()
+            .is_some_and(|commands| commands.send(Command::Request { request, reply }).is_ok());
+        if !sent {
+            return Err(TrackError::Writer("the map's writer has stopped".into()));
+        }
+        match answer.recv() {
+            Ok(Ok(reply)) => Ok(reply),
+            Ok(Err(Failure::Error(e))) => Err(e),
+            Ok(Err(Failure::Panic(payload))) => std::panic::resume_unwind(payload),
+            Err(_) => Err(TrackError::Writer(
+                "the map's writer stopped before answering".into(),
+            )),
+        }
+    }
+
     fn entry(&self, id: MapId) -> Result<Arc<MapEntry>, TrackError> {
         lock(&self.inner.maps)
             .get(&id)
@@ -291,21 +417,7 @@ impl MapWriter for MapService {
             // A map of another service that happens to share the id.
             return Err(TrackError::UnknownMap(map.id()));
         }
-        let (reply, answer) = mpsc::sync_channel(1);
-        let sent = lock(&entry.commands)
-            .as_ref()
-            .is_some_and(|commands| commands.send(Command::Request { request, reply }).is_ok());
-        if !sent {
-            return Err(TrackError::Writer("the map's writer has stopped".into()));
-        }
-        match answer.recv() {
-            Ok(Ok(reply)) => Ok(reply),
-            Ok(Err(Failure::Error(e))) => Err(e),
-            Ok(Err(Failure::Panic(payload))) => std::panic::resume_unwind(payload),
-            Err(_) => Err(TrackError::Writer(
-                "the map's writer stopped before answering".into(),
-            )),
-        }
+        Self::ask(&entry, request)
     }
 }
 
@@ -353,6 +465,21 @@ impl Writer {
                 Command::Request { request, reply } => (request, reply),
                 Command::Refresh => {
                     self.guarded("the map's semantic layer", Self::publish_semantics);
+                    continue;
+                }
+                Command::Absorb { source, reply } => {
+                    let outcome = catch_unwind(AssertUnwindSafe(|| {
+                        let source = source.read();
+                        self.mapper.absorb(&mut self.map.write(), &source)
+                    }));
+                    let answer = match outcome {
+                        Ok(Ok(outcome)) => Ok(outcome),
+                        Ok(Err(error)) => Err(Failure::Error(error)),
+                        Err(payload) => Err(Failure::Panic(payload)),
+                    };
+                    self.guarded("the map's snapshot", |w| w.publish_geometry(None));
+                    self.guarded("the map's semantic layer", Self::publish_semantics);
+                    let _ = reply.send(answer);
                     continue;
                 }
             };

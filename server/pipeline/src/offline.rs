@@ -104,6 +104,8 @@ pub struct Trajectories {
     pub refined: Vec<TrajectoryPose>,
     /// Each frame's pose as tracking gave it at the time (what a robot was told live).
     pub as_tracked: Vec<TrajectoryPose>,
+    /// Each frame's anchor keyframe in its map (the robot's map `map` of the pose), as tracked.
+    pub anchors: Vec<Option<vsgraphs_slam::Anchor>>,
 }
 
 /// Runs `dataset` through the pipeline; `progress(done, total)` is called after every frame.
@@ -136,6 +138,7 @@ pub fn run(
         depth_scale: dataset.depth_scale,
         total,
         dictionary: dictionary.as_ref(),
+        maps: None,
     };
     run_frames(config, source, frames, progress)
 }
@@ -148,6 +151,9 @@ pub struct FrameSource<'a> {
     pub total: usize,
     /// The semantic dictionary of the place (when the semantic layer is on).
     pub dictionary: Option<&'a Dictionary>,
+    /// The maps to map in, shared with other runs (robots of one building); `None`: a service
+    /// of the run's own, from the configuration and `dictionary`.
+    pub maps: Option<&'a MapService>,
 }
 
 /// Runs encoded frames (or the reasons they could not be read) through the pipeline, in order.
@@ -159,12 +165,16 @@ pub fn run_frames(
     mut progress: impl FnMut(usize, usize),
 ) -> anyhow::Result<(OfflineSummary, Trajectories)> {
     // Frames read from disk are held to the same size limit as a live robot's by default.
+    let maps = match source.maps {
+        Some(shared) => shared.clone(),
+        None => MapService::with_semantics(config.semantics.enabled, source.dictionary.cloned())
+            .with_whole_map_optimisation(config.semantics.optimise_every_keyframes),
+    };
     let mut processor = FrameProcessor::new(
         &config.markers,
         &config.tracking,
         DEFAULT_MAX_FRAME_BYTES,
-        MapService::with_semantics(config.semantics.enabled, source.dictionary.cloned())
-            .with_whole_map_optimisation(config.semantics.optimise_every_keyframes),
+        maps,
     )?;
     let started = Instant::now();
     let total = source.total;
@@ -284,8 +294,54 @@ pub fn run_frames(
         Trajectories {
             refined,
             as_tracked: poses,
+            anchors,
         },
     ))
+}
+
+/// A run's poses, each moved with its anchor keyframe in the map that keyframe is in now,
+/// following the merges of `service` (the run's maps must be `service`'s): the best estimate
+/// once the maps of several runs were merged. Each pose's `map` is then the server's id of
+/// that map; a pose without an anchor, or whose map is gone, keeps its pose as tracked.
+pub fn refined_after_merges(
+    service: &MapService,
+    summary: &OfflineSummary,
+    poses: &Trajectories,
+) -> Vec<TrajectoryPose> {
+    let mut views = std::collections::HashMap::new();
+    poses
+        .as_tracked
+        .iter()
+        .zip(&poses.anchors)
+        .map(|(pose, anchor)| {
+            let mut pose = *pose;
+            let Some(view) = summary.map_views.get(pose.map as usize) else {
+                return pose;
+            };
+            let Some(anchor) = anchor else {
+                return pose;
+            };
+            let (map, keyframe) = service.resolve(vsgraphs_slam::MapId(view.id), anchor.keyframe);
+            let latest = views
+                .entry(map)
+                .or_insert_with(|| service.snapshot(map))
+                .clone();
+            let moved = latest.and_then(|v| {
+                crate::model::anchored_in_view(
+                    &v,
+                    &vsgraphs_slam::Anchor {
+                        keyframe,
+                        keyframe_from_camera: anchor.keyframe_from_camera,
+                    },
+                )
+            });
+            if let Some(p) = moved {
+                pose.map = map.0;
+                pose.world_from_camera = crate::model::api_pose(&p);
+            }
+            pose
+        })
+        .collect()
 }
 
 /// Poses as a trajectory (stamps in seconds).

@@ -18,4 +18,6 @@ pub enum TrackError {
     UnknownMap(MapId),
     #[error("the map's writer: {0}")]
     Writer(String),
+    #[error("the maps were not merged: {0}")]
+    Merge(#[from] crate::merge::NoAlignment),
 }

@@ -418,6 +418,15 @@ fn essential_edges(map: &Map, live: &[KeyFrameId]) -> Vec<Edge> {
         }
     };
     for pair in live.windows(2) {
+        // A keyframe that starts a trajectory of its own (a merged map's first) does not
+        // follow the keyframe before it.
+        if map
+            .trajectory_starts
+            .range(pair[0]..=pair[1])
+            .any(|&s| s > pair[0])
+        {
+            continue;
+        }
         let shared = map
             .neighbours(pair[1])
             .iter()
@@ -681,5 +690,30 @@ mod tests {
         );
         // The keyframe added meanwhile stays where it was put.
         assert!(map.keyframe(added).world_from_camera.local(&pose).norm() < 1e-12);
+    }
+
+    #[test]
+    fn a_merged_maps_first_keyframe_does_not_follow_the_keyframe_before_it() {
+        let (mut map, _) = drifted_map();
+        let live: Vec<KeyFrameId> = map.keyframes.iter().map(|k| k.id).collect();
+        let pairs = |map: &Map| -> Vec<(u32, u32)> {
+            essential_edges(map, &live)
+                .iter()
+                .map(|e| (e.i.0, e.j.0))
+                .collect()
+        };
+        assert!(pairs(&map).contains(&(19, 20)));
+        map.trajectory_starts.insert(KeyFrameId(20));
+        let edges = pairs(&map);
+        assert!(!edges.contains(&(19, 20)), "{edges:?}");
+        assert!(edges.contains(&(18, 19)) && edges.contains(&(20, 21)));
+        // Nor when the keyframe before the start was culled: 18 is then followed by 20.
+        map.keyframes[19].parent = Some((KeyFrameId(18), Se3::identity()));
+        let live: Vec<KeyFrameId> = live.into_iter().filter(|k| k.0 != 19).collect();
+        let edges: Vec<(u32, u32)> = essential_edges(&map, &live)
+            .iter()
+            .map(|e| (e.i.0, e.j.0))
+            .collect();
+        assert!(!edges.contains(&(18, 20)), "{edges:?}");
     }
 }

@@ -8,9 +8,9 @@
 //! and each map's writer on a thread of its own ([`atlas::MapWriter`]).
 //!
 //! Modules, from the bottom: [`sighting`] and [`frame`] (what one frame saw), [`map`] (the
-//! arenas), [`matcher`], then the work on maps: [`markers`], [`mapping`], [`triangulation`],
-//! [`local_mapping`] (a map's writer), [`atlas`] (maps shared between writer and trackers) and
-//! [`tracking`].
+//! arenas), [`matcher`] and [`rigid`], then the work on maps: [`markers`], [`mapping`],
+//! [`triangulation`], [`local_mapping`] (a map's writer), [`merge`] (two maps of one place made
+//! one), [`atlas`] (maps shared between writer and trackers) and [`tracking`].
 
 pub mod atlas;
 pub mod error;
@@ -21,6 +21,8 @@ pub mod map;
 pub mod mapping;
 pub mod markers;
 pub mod matcher;
+pub mod merge;
+pub mod rigid;
 pub mod sighting;
 pub mod tracking;
 pub mod triangulation;

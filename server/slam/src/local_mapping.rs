@@ -14,6 +14,7 @@ use crate::global::{self, GlobalJob, SolvedGlobal};
 use crate::map::{KeyFrameId, Map, MapPointId};
 use crate::mapping::{self, LocalBaJob, SolvedLocalBa};
 use crate::markers;
+use crate::merge;
 use crate::triangulation;
 use crate::walls::WallPrior;
 use crate::worker::Worker;
@@ -139,6 +140,15 @@ pub struct LocalMapper {
     pending_whole_map: Option<Rig>,
 }
 
+/// What joining another map to this one did ([`LocalMapper::absorb`]).
+#[derive(Clone, Debug)]
+pub struct MergeOutcome {
+    pub alignment: merge::Alignment,
+    pub absorbed: merge::Absorbed,
+    /// The whole-map optimisation that pulled the two parts together, when one ran.
+    pub whole_map: Option<global::GlobalReport>,
+}
+
 impl LocalMapper {
     pub fn new(config: MappingConfig) -> Self {
         Self {
@@ -152,6 +162,41 @@ impl LocalMapper {
             whole_map_worker: None,
             pending_whole_map: None,
         }
+    }
+
+    /// Joins `source`, another map of the same place, to `map` ([`merge`]): what is pending
+    /// lands first, the maps are aligned by the markers both hold and the points around them,
+    /// `source` is moved in, and the whole map is optimised at once so that the two parts meet
+    /// where they share markers and points (this map's newest keyframe and its window hold
+    /// still: the part moved in comes to it). Nothing changes when the maps do not align.
+    pub fn absorb(&mut self, map: &mut Map, source: &Map) -> Result<MergeOutcome, TrackError> {
+        let alignment = merge::align_by_markers(map, source)?;
+        self.finish_local_ba(map)?;
+        self.land_whole_map(map, true);
+        let newest = newest_live(map);
+        let absorbed = merge::absorb(map, source, &alignment);
+        let whole_map = match (map.rig.clone(), newest) {
+            (Some(rig), Some(newest)) => {
+                let hold: HashSet<KeyFrameId> = std::iter::once(newest)
+                    .chain(mapping::local_window(map, newest))
+                    .collect();
+                // The maps are one already: a failed solve leaves the parts where the
+                // alignment put them, and the next whole-map optimisation tries again.
+                match global::optimise_map(map, &rig, &self.walls, &hold, WHOLE_MAP_ITERATIONS) {
+                    Ok(report) => Some(report),
+                    Err(error) => {
+                        tracing::warn!(%error, "the merged map's optimisation failed");
+                        None
+                    }
+                }
+            }
+            _ => None,
+        };
+        Ok(MergeOutcome {
+            alignment,
+            absorbed,
+            whole_map,
+        })
     }
 
     /// The map's walls for the bundle adjustments to come (its semantic layer builds them
@@ -179,13 +224,7 @@ impl LocalMapper {
             return Ok(());
         }
         self.since_whole_map = 0;
-        let Some(newest) = map
-            .keyframes
-            .iter()
-            .rev()
-            .find(|k| !k.is_culled())
-            .map(|k| k.id)
-        else {
+        let Some(newest) = newest_live(map) else {
             return Ok(());
         };
         let hold: HashSet<KeyFrameId> = std::iter::once(newest)
@@ -254,6 +293,7 @@ impl LocalMapper {
 
     /// The first keyframe: every keypoint with depth becomes one of its points.
     fn start(&mut self, map: &mut Map, frame: Frame, rig: &Rig) -> MapReply {
+        map.rig = Some(rig.clone());
         let n = frame.len();
         let keyframe = map.add_keyframe(frame, Se3::identity());
         for i in 0..n {
@@ -382,4 +422,13 @@ impl LocalMapper {
             .compose(&before.inverse());
         Ok((Some(correction), solve_time))
     }
+}
+
+/// The newest keyframe not culled.
+fn newest_live(map: &Map) -> Option<KeyFrameId> {
+    map.keyframes
+        .iter()
+        .rev()
+        .find(|k| !k.is_culled())
+        .map(|k| k.id)
 }

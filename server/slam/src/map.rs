@@ -84,11 +84,16 @@ pub struct Map {
     pub points: Vec<MapPoint>,
     /// Marker landmarks by ArUco id.
     pub markers: BTreeMap<i32, MapMarker>,
+    /// The camera the map was started with (its first keyframe's).
+    pub rig: Option<Rig>,
+    /// Keyframes that begin a trajectory of their own in this map (the first keyframe of each
+    /// map merged into it): the keyframe before one in the arena is not its predecessor.
+    pub trajectory_starts: std::collections::BTreeSet<KeyFrameId>,
     /// Each keyframe's covisible keyframes as of its last refresh (see [`Map::neighbours`]).
-    neighbours: Vec<Vec<(KeyFrameId, usize)>>,
+    pub(crate) neighbours: Vec<Vec<(KeyFrameId, usize)>>,
     /// Points marked bad, counted as they are: the API reads the live count on every frame,
     /// and a long run's map holds tens of thousands.
-    culled_points: usize,
+    pub(crate) culled_points: usize,
 }
 
 impl Map {
@@ -412,13 +417,14 @@ impl MapMarker {
 }
 
 #[cfg(test)]
-mod tests {
+pub(crate) mod tests {
     use super::*;
     use crate::frame::Keypoint;
 
     use crate::frame::tests::rig;
 
-    fn frame(n: usize, rig: &Rig) -> Frame {
+    /// A frame of `n` keypoints in a row, each with depth and a descriptor of its own.
+    pub(crate) fn frame(n: usize, rig: &Rig) -> Frame {
         let keypoints = (0..n)
             .map(|i| Keypoint {
                 x: 10.0 * i as f64,

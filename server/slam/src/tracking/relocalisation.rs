@@ -11,7 +11,8 @@ use crate::local_mapping::PointStatistics;
 use crate::map::{KeyFrameId, Map, MapPointId};
 use crate::markers;
 use crate::matcher;
-use nalgebra::{Matrix3, Vector3};
+use crate::rigid::{ransac_rigid, rigid_fit};
+use nalgebra::Vector3;
 use vsgraphs_optim::Se3;
 
 /// Nearest over second-nearest descriptor distance a match must beat.
@@ -174,68 +175,14 @@ fn ransac_pose(pairs: &[(Vector3<f64>, Vector3<f64>)], seed: u64) -> Option<Se3>
     if pairs.len() < RANSAC_MIN_INLIERS {
         return None;
     }
-    let mut state = seed | 1;
-    let mut next = |n: usize| {
-        state ^= state << 13;
-        state ^= state >> 7;
-        state ^= state << 17;
-        (state % n as u64) as usize
-    };
-    let inliers_of = |pose: &Se3| -> Vec<usize> {
-        pairs
-            .iter()
-            .enumerate()
-            .filter(|(_, (w, c))| {
-                (pose.transform_point(c) - w).norm()
-                    < RANSAC_DISTANCE_M + RANSAC_DISTANCE_PER_DEPTH * c.z
-            })
-            .map(|(i, _)| i)
-            .collect()
-    };
-    let mut best: Vec<usize> = Vec::new();
-    for _ in 0..RANSAC_SAMPLES {
-        let (a, b, c) = (next(pairs.len()), next(pairs.len()), next(pairs.len()));
-        if a == b || b == c || a == c {
-            continue;
-        }
-        let Some(pose) = rigid_fit(&[pairs[a], pairs[b], pairs[c]]) else {
-            continue;
-        };
-        let inliers = inliers_of(&pose);
-        if inliers.len() > best.len() {
-            best = inliers;
-        }
-    }
+    let (_, best) = ransac_rigid(pairs, seed, RANSAC_SAMPLES, |pose, (w, c)| {
+        (pose.transform_point(c) - w).norm() < RANSAC_DISTANCE_M + RANSAC_DISTANCE_PER_DEPTH * c.z
+    })?;
     if best.len() < RANSAC_MIN_INLIERS {
         return None;
     }
     let chosen: Vec<_> = best.iter().map(|&i| pairs[i]).collect();
     rigid_fit(&chosen)
-}
-
-/// The rigid transform taking the second points of each pair onto the first (Kabsch).
-fn rigid_fit(pairs: &[(Vector3<f64>, Vector3<f64>)]) -> Option<Se3> {
-    let n = pairs.len() as f64;
-    let mean_w = pairs.iter().map(|p| p.0).sum::<Vector3<f64>>() / n;
-    let mean_c = pairs.iter().map(|p| p.1).sum::<Vector3<f64>>() / n;
-    let mut cross = Matrix3::zeros();
-    for (w, c) in pairs {
-        cross += (w - mean_w) * (c - mean_c).transpose();
-    }
-    let svd = cross.svd(true, true);
-    let (u, v_t) = (svd.u?, svd.v_t?);
-    // Degenerate (collinear) samples have two vanishing singular values.
-    if svd.singular_values[1] < 1e-9 * svd.singular_values[0].max(1e-12) {
-        return None;
-    }
-    let mut d = Matrix3::identity();
-    if (u * v_t).determinant() < 0.0 {
-        d[(2, 2)] = -1.0;
-    }
-    let rotation = u * d * v_t;
-    let rotation = nalgebra::UnitQuaternion::from_matrix(&rotation);
-    let translation = mean_w - rotation * mean_c;
-    Some(Se3::new(rotation, translation))
 }
 
 #[cfg(test)]

@@ -1,0 +1,924 @@
+//! Two maps of one place made one. A robot that restarts somewhere else, or a second robot,
+//! maps a part of the building in a map of its own; once two maps hold the same markers they
+//! are one building seen twice, and one map is moved into the other's frame and joined to it.
+//!
+//! Markers are the place recognition here (UcoSLAM's idea): ids are unique in a building, so a
+//! marker mapped in both maps names one place. One id is not proof (an id printed twice, a
+//! misread one), so the maps are aligned only when at least [`MIN_SHARED_MARKERS`] shared
+//! markers agree on one rigid transform, or one marker and the points around it, found again
+//! in the other map where the marker puts them. The joined map keeps both maps' keyframes, points and
+//! sightings; a marker in both is one landmark with the sightings of both, so the next
+//! whole-map optimisation pulls the two parts together where they meet.
+
+use crate::frame::Rig;
+use crate::map::{KeyFrameId, Map, MapMarker, MapPointId};
+use crate::matcher::{search_by_projection, Projected, SearchOptions, TH_HIGH};
+use crate::rigid::{ransac_rigid, rigid_fit, Pair};
+use nalgebra::Vector3;
+use vsgraphs_optim::Se3;
+
+/// Shared markers that must agree before two maps are aligned on markers alone.
+pub const MIN_SHARED_MARKERS: usize = 2;
+
+/// Points that must confirm a single shared marker: ORB-SLAM accepts a place once 20–50 of
+/// its points are found again where the candidate transform puts them.
+pub const MIN_POINT_INLIERS: usize = 30;
+
+/// A point found again counts when it lies within this distance of where the transform puts
+/// it, metres: depth noise at a few metres and the maps' drift over a building (centimetres).
+pub const MAX_POINT_ERROR_M: f64 = 0.10;
+
+/// Largest RMS distance between a shared marker's corners in the two maps once aligned,
+/// metres: well above the error of mapped markers and the drift between two maps over a
+/// building (centimetres), well below the distance between two places that one id printed twice
+/// could mark (metres).
+pub const MAX_CORNER_RMS_M: f64 = 0.15;
+
+/// Largest angle between a shared marker's orientations in the two maps once aligned, radians
+/// (15°). A marker's pose from an oblique view can be flipped while its corners stay close.
+pub const MAX_MARKER_ANGLE_RAD: f64 = 0.26;
+
+/// How a source map lies in a target map's frame, by the markers both hold and the points
+/// around them.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Alignment {
+    pub target_from_source: Se3,
+    /// Shared markers it puts at one place in both maps (centres within
+    /// [`MAX_CORNER_RMS_M`]).
+    pub markers: Vec<i32>,
+    /// Of those, the ones whose orientations differ by more than [`MAX_MARKER_ANGLE_RAD`]: one
+    /// map holds the marker turned (a pose flipped by an oblique view).
+    pub turned: Vec<i32>,
+    /// Shared markers it does not put at one place, with the distance between their centres,
+    /// metres (an id printed twice, a misread one).
+    pub disagreeing: Vec<(i32, f64)>,
+    /// RMS distance between the centres of `markers` in the two maps, metres.
+    pub marker_rms_m: f64,
+    /// The source's points found in the target's keyframes where the transform puts them
+    /// (within [`MAX_POINT_ERROR_M`]); 0 when no transform from points was found.
+    pub point_inliers: usize,
+    /// Those points, each with the target keypoint it was found as: [`absorb`] makes each pair
+    /// one point, which ties the two maps' keyframes together where they meet.
+    pub seam: Vec<SeamMatch>,
+}
+
+/// A source point found as a keypoint of a target keyframe.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct SeamMatch {
+    pub keyframe: KeyFrameId,
+    pub keypoint: usize,
+    pub source_point: MapPointId,
+    /// The keypoint's position (from its depth) in the target, and the source point's in the
+    /// source.
+    pub target_position: Vector3<f64>,
+    pub source_position: Vector3<f64>,
+}
+
+impl SeamMatch {
+    fn pair(&self) -> Pair {
+        (self.target_position, self.source_position)
+    }
+}
+
+/// Why two maps were not aligned.
+#[derive(Clone, Debug, PartialEq, thiserror::Error)]
+pub enum NoAlignment {
+    #[error("the maps share {} marker(s) ({shared:?}); {MIN_SHARED_MARKERS} are needed", shared.len())]
+    TooFewShared { shared: Vec<i32> },
+    #[error("the maps were made with different cameras")]
+    OtherCamera,
+    #[error(
+        "the maps share one marker ({marker}), and {point_inliers} points confirm it \
+         ({MIN_POINT_INLIERS} are needed)"
+    )]
+    Unconfirmed { marker: i32, point_inliers: usize },
+    #[error("the shared markers {shared:?} do not agree on one place (at most {agreeing:?} do)")]
+    Disagree {
+        shared: Vec<i32>,
+        agreeing: Vec<i32>,
+    },
+}
+
+/// What [`absorb`] did: where the source's keyframes and points now are.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Absorbed {
+    /// The source's keyframe `k` is the target's `k + keyframe_offset`.
+    pub keyframe_offset: u32,
+    /// The source's point `p` is the target's `p + point_offset`.
+    pub point_offset: u32,
+    pub target_from_source: Se3,
+    /// Markers both maps held, now one landmark each.
+    pub fused_markers: Vec<i32>,
+    /// Markers only the source held.
+    pub new_markers: Vec<i32>,
+    /// Points of the seam made one.
+    pub fused_points: usize,
+}
+
+impl Absorbed {
+    pub fn keyframe(&self, source: KeyFrameId) -> KeyFrameId {
+        KeyFrameId(source.0 + self.keyframe_offset)
+    }
+
+    pub fn point(&self, source: MapPointId) -> MapPointId {
+        MapPointId(source.0 + self.point_offset)
+    }
+}
+
+/// The markers both maps hold, of the same printed size, by id.
+pub fn shared_markers<'a>(target: &'a Map, source: &'a Map) -> Vec<(&'a MapMarker, &'a MapMarker)> {
+    target
+        .markers
+        .values()
+        .filter_map(|t| {
+            let s = source.markers.get(&t.id)?;
+            ((t.side_m - s.side_m).abs() < 1e-3).then_some((t, s))
+        })
+        .collect()
+}
+
+/// RMS distance between a marker's corners in the target and its source corners moved by
+/// `target_from_source`, and the angle between the two orientations.
+fn disagreement(target: &MapMarker, source: &MapMarker, target_from_source: &Se3) -> (f64, f64) {
+    let moved = target_from_source.compose(&source.world_from_marker);
+    let sum: f64 = target
+        .corners_in_world()
+        .iter()
+        .zip(source.corners_in_world())
+        .map(|(t, s)| (t - target_from_source.transform_point(&s)).norm_squared())
+        .sum();
+    let angle = target.world_from_marker.rotation.angle_to(&moved.rotation);
+    ((sum / 4.0).sqrt(), angle)
+}
+
+fn agrees(d: (f64, f64)) -> bool {
+    d.0 <= MAX_CORNER_RMS_M && d.1 <= MAX_MARKER_ANGLE_RAD
+}
+
+/// Distance between a marker's centre in the target and its source centre moved.
+fn centre_distance(target: &MapMarker, source: &MapMarker, target_from_source: &Se3) -> f64 {
+    (target.world_from_marker.translation
+        - target_from_source.transform_point(&source.world_from_marker.translation))
+    .norm()
+}
+
+/// Aligns `source` to `target` by the markers both hold and the points around them.
+///
+/// 1. Markers: each shared marker proposes the transform that puts its two poses together;
+///    the proposal most shared markers agree with (corners within [`MAX_CORNER_RMS_M`],
+///    orientations within [`MAX_MARKER_ANGLE_RAD`]) is refitted on their corners (Kabsch).
+/// 2. Points: the source's points around those markers are looked for in the target's
+///    keyframes that saw them, first in a wide window (a marker's pose may be degrees off),
+///    and a RANSAC of rigid fits over the pairs gives a transform from points alone, which
+///    must put a shared marker's centres together; then in a narrow window where that
+///    transform puts them, and the pairs within [`MAX_POINT_ERROR_M`] confirm it. Points spread
+///    over metres fix the rotation better than one marker's corners, so it is then kept. When
+///    the markers do not agree (one may be turned in one map), each one's own transform is
+///    tried as the start, and the one most points confirm wins.
+///
+/// The maps align when [`MIN_SHARED_MARKERS`] markers agree, or one marker is put at one
+/// place and [`MIN_POINT_INLIERS`] points confirm it.
+pub fn align_by_markers(target: &Map, source: &Map) -> Result<Alignment, NoAlignment> {
+    if let (Some(a), Some(b)) = (&target.rig, &source.rig) {
+        if a != b {
+            return Err(NoAlignment::OtherCamera);
+        }
+    }
+    let shared = shared_markers(target, source);
+    let ids: Vec<i32> = shared.iter().map(|(t, _)| t.id).collect();
+    if shared.is_empty() {
+        return Err(NoAlignment::TooFewShared { shared: ids });
+    }
+    let agreeing_with = |transform: &Se3| -> Vec<usize> {
+        (0..shared.len())
+            .filter(|&i| agrees(disagreement(shared[i].0, shared[i].1, transform)))
+            .collect()
+    };
+    let placed_by = |transform: &Se3| -> Vec<usize> {
+        (0..shared.len())
+            .filter(|&i| centre_distance(shared[i].0, shared[i].1, transform) <= MAX_CORNER_RMS_M)
+            .collect()
+    };
+    // 1. The proposal with the most agreeing markers; the first such in id order on a tie.
+    let mut seeds: Vec<usize> = Vec::new();
+    let mut transform = Se3::identity();
+    for (t, s) in &shared {
+        let proposal = t.world_from_marker.compose(&s.world_from_marker.inverse());
+        let agreeing = agreeing_with(&proposal);
+        if agreeing.len() > seeds.len() {
+            seeds = agreeing;
+            transform = proposal;
+        }
+    }
+    if seeds.len() >= 2 {
+        let corners: Vec<Pair> = seeds
+            .iter()
+            .flat_map(|&i| {
+                shared[i]
+                    .0
+                    .corners_in_world()
+                    .into_iter()
+                    .zip(shared[i].1.corners_in_world())
+            })
+            .collect();
+        if let Some(fit) = rigid_fit(&corners) {
+            transform = fit;
+            seeds = agreeing_with(&transform);
+        }
+    }
+    // 2. Points: a transform from the points around the markers, found where the agreeing
+    // markers put them, or where each shared marker alone puts them (one may be turned in
+    // one map); the one most points confirm, if it puts a shared marker at one place in both
+    // maps.
+    let mut seam = Vec::new();
+    if let Some(rig) = target.rig.as_ref().or(source.rig.as_ref()) {
+        let mut starts: Vec<(Vec<i32>, Se3)> = Vec::new();
+        if !seeds.is_empty() {
+            starts.push((seeds.iter().map(|&i| shared[i].0.id).collect(), transform));
+        }
+        if seeds.len() < shared.len() {
+            for (t, s) in &shared {
+                let alone = t.world_from_marker.compose(&s.world_from_marker.inverse());
+                starts.push((vec![t.id], alone));
+            }
+        }
+        let proposals = starts
+            .iter()
+            .map(|(near, start)| from_points(target, source, rig, near, start));
+        for fit in proposals.flatten() {
+            if placed_by(&fit).is_empty() {
+                continue;
+            }
+            let (refit, confirming) = confirm(target, source, rig, &ids, &fit);
+            if confirming.len() > seam.len() && !placed_by(&refit).is_empty() {
+                if confirming.len() >= MIN_POINT_INLIERS {
+                    transform = refit;
+                }
+                seam = confirming;
+            }
+        }
+    }
+    let point_inliers = seam.len();
+    // 3. What the transform makes of the shared markers.
+    let agreeing = agreeing_with(&transform);
+    let placed = placed_by(&transform);
+    let confirmed = !placed.is_empty() && point_inliers >= MIN_POINT_INLIERS;
+    if agreeing.len() < MIN_SHARED_MARKERS && !confirmed {
+        return Err(if shared.len() == 1 {
+            NoAlignment::Unconfirmed {
+                marker: ids[0],
+                point_inliers,
+            }
+        } else {
+            NoAlignment::Disagree {
+                shared: ids,
+                agreeing: agreeing.iter().map(|&i| shared[i].0.id).collect(),
+            }
+        });
+    }
+    let squared: f64 = placed
+        .iter()
+        .map(|&i| centre_distance(shared[i].0, shared[i].1, &transform).powi(2))
+        .sum();
+    Ok(Alignment {
+        target_from_source: transform,
+        markers: placed.iter().map(|&i| shared[i].0.id).collect(),
+        turned: placed
+            .iter()
+            .filter(|i| !agreeing.contains(i))
+            .map(|&i| shared[i].0.id)
+            .collect(),
+        disagreeing: (0..shared.len())
+            .filter(|i| !placed.contains(i))
+            .map(|i| {
+                (
+                    shared[i].0.id,
+                    centre_distance(shared[i].0, shared[i].1, &transform),
+                )
+            })
+            .collect(),
+        marker_rms_m: (squared / placed.len().max(1) as f64).sqrt(),
+        point_inliers,
+        // Points that a transform from markers alone does not hold are not fused.
+        seam: if point_inliers >= MIN_POINT_INLIERS {
+            seam
+        } else {
+            Vec::new()
+        },
+    })
+}
+
+/// A transform from the source's points around the markers `near`, looked for in a wide
+/// window where `transform` puts them in the target's keyframes that saw those markers: a
+/// RANSAC of rigid fits over the pairs found near where it puts them.
+fn from_points(
+    target: &Map,
+    source: &Map,
+    rig: &Rig,
+    near: &[i32],
+    transform: &Se3,
+) -> Option<Se3> {
+    let wide: Vec<Pair> = point_pairs(target, source, rig, near, transform, WIDE_WINDOW_PX)
+        .iter()
+        .map(SeamMatch::pair)
+        .filter(|(to, from)| (to - transform.transform_point(from)).norm() <= WIDE_POINT_ERROR_M)
+        .collect();
+    fit_by_ransac(&wide)
+}
+
+/// The rigid fit on the inliers of the best three-point RANSAC fit, when it has enough.
+fn fit_by_ransac(pairs: &[Pair]) -> Option<Se3> {
+    let (_, inliers) = ransac_rigid(pairs, RANSAC_SEED, RANSAC_SAMPLES, |t, (to, from)| {
+        (to - t.transform_point(from)).norm() <= RANSAC_POINT_ERROR_M
+    })?;
+    tracing::debug!(
+        pairs = pairs.len(),
+        inliers = inliers.len(),
+        "RANSAC of rigid fits"
+    );
+    if inliers.len() < MIN_FIT_POINTS {
+        return None;
+    }
+    rigid_fit(&inliers.iter().map(|&i| pairs[i]).collect::<Vec<_>>())
+}
+
+/// The source's points around the markers `near` found in a narrow window where `fit` puts
+/// them, the transform refitted on those within [`MAX_POINT_ERROR_M`], and the matches that
+/// confirm the refit.
+fn confirm(
+    target: &Map,
+    source: &Map,
+    rig: &Rig,
+    near: &[i32],
+    fit: &Se3,
+) -> (Se3, Vec<SeamMatch>) {
+    let narrow = point_pairs(target, source, rig, near, fit, POINT_WINDOW_PX);
+    let within = |t: &Se3| -> Vec<SeamMatch> {
+        narrow
+            .iter()
+            .filter(|m| {
+                (m.target_position - t.transform_point(&m.source_position)).norm()
+                    <= MAX_POINT_ERROR_M
+            })
+            .copied()
+            .collect()
+    };
+    let kept = within(fit);
+    let refit = rigid_fit(&kept.iter().map(SeamMatch::pair).collect::<Vec<_>>()).unwrap_or(*fit);
+    let confirming = within(&refit);
+    tracing::debug!(
+        narrow = narrow.len(),
+        confirming = confirming.len(),
+        "points of the source found in the target"
+    );
+    (refit, confirming)
+}
+
+/// Source points within this distance of a marker are looked for, metres (a room's wall).
+const POINTS_AROUND_MARKER_M: f64 = 3.0;
+/// Search windows for a source point's projection, pixels at its level: the first pass's
+/// (the transform from markers alone) and the second's (from points), and how far from where
+/// the markers put it a first-pass pair may lie, metres.
+const WIDE_WINDOW_PX: f64 = 20.0;
+const POINT_WINDOW_PX: f64 = 5.0;
+const WIDE_POINT_ERROR_M: f64 = 0.3;
+/// RANSAC of the first pass: samples, seed, inlier distance (depth noise at a few metres), and
+/// the inliers a transform from points needs.
+const RANSAC_SAMPLES: usize = 200;
+const RANSAC_SEED: u64 = 0x5EED;
+const RANSAC_POINT_ERROR_M: f64 = 0.05;
+const MIN_FIT_POINTS: usize = 6;
+
+/// Pairs of 3-D positions of one place in both maps, `(target, source)`: the source's points
+/// near the markers `near`, moved by `transform` into the target's keyframes that saw those
+/// markers, matched by descriptor to keypoints with depth there (back-projected).
+fn point_pairs(
+    target: &Map,
+    source: &Map,
+    rig: &Rig,
+    near: &[i32],
+    transform: &Se3,
+    window_px: f64,
+) -> Vec<SeamMatch> {
+    let mut taken_points = vec![false; source.points.len()];
+    let mut pairs = Vec::new();
+    for id in near {
+        let (Some(t), Some(s)) = (target.markers.get(id), source.markers.get(id)) else {
+            continue;
+        };
+        let centre = s.world_from_marker.translation;
+        let around: Vec<usize> = source
+            .points
+            .iter()
+            .enumerate()
+            .filter(|(_, p)| !p.bad && (p.position - centre).norm() <= POINTS_AROUND_MARKER_M)
+            .map(|(i, _)| i)
+            .collect();
+        let mut keyframes: Vec<KeyFrameId> = t
+            .observations
+            .iter()
+            .map(|&(k, _)| k)
+            .filter(|&k| !target.keyframe(k).is_culled())
+            .collect();
+        keyframes.sort_unstable();
+        keyframes.dedup();
+        for &k in keyframes.iter().rev() {
+            let keyframe = target.keyframe(k);
+            let camera_from_source = keyframe.world_from_camera.inverse().compose(transform);
+            let camera_centre = keyframe.world_from_camera.translation;
+            let mut candidates = Vec::new();
+            let mut which = Vec::new();
+            for &i in &around {
+                if taken_points[i] {
+                    continue;
+                }
+                let point = &source.points[i];
+                let Some((p_c, u, v)) =
+                    crate::matcher::project(rig, &camera_from_source, &point.position)
+                else {
+                    continue;
+                };
+                let at = transform.transform_point(&point.position);
+                let distance = (at - camera_centre).norm();
+                if distance < point.min_distance * 0.8 || distance > point.max_distance * 1.2 {
+                    continue;
+                }
+                let level = rig.predict_level(point.max_distance, distance);
+                candidates.push(Projected {
+                    u,
+                    v,
+                    right_u: u - rig.bf / p_c.z,
+                    min_level: level.saturating_sub(1),
+                    max_level: (level + 1).min(rig.levels - 1),
+                    radius: window_px * rig.scale(level),
+                    descriptor: point.descriptor,
+                    angle: None,
+                });
+                which.push(i);
+            }
+            let taken = vec![false; keyframe.frame.len()];
+            // Windows bound the search, so ORB-SLAM's threshold for projection searches applies;
+            // other robots' views of a place differ more than one robot's.
+            let options = SearchOptions {
+                max_distance: TH_HIGH,
+                ratio: Some(0.8),
+                check_orientation: false,
+            };
+            for (c, keypoint) in
+                search_by_projection(&keyframe.frame, &candidates, &taken, &options)
+            {
+                let Some(in_camera) = keyframe.frame.back_project(keypoint, &rig.camera) else {
+                    continue;
+                };
+                let i = which[c];
+                taken_points[i] = true;
+                pairs.push(SeamMatch {
+                    keyframe: k,
+                    keypoint,
+                    source_point: MapPointId(i as u32),
+                    target_position: keyframe.world_from_camera.transform_point(&in_camera),
+                    source_position: source.points[i].position,
+                });
+            }
+        }
+    }
+    pairs
+}
+
+/// Moves every keyframe, point and marker of `source` into `target`, in the target's frame by
+/// the alignment's transform, after the target's own (ids offset, never reused). A marker both
+/// hold keeps the target's pose and gains the source's sightings; each point of the seam
+/// becomes the target's point its keypoint sees (or that keypoint's point), so keyframes of
+/// both parts share points where the maps meet; the source's first keyframe starts a
+/// trajectory of its own ([`Map::trajectory_starts`]).
+pub fn absorb(target: &mut Map, source: &Map, alignment: &Alignment) -> Absorbed {
+    let target_from_source = &alignment.target_from_source;
+    let absorbed = Absorbed {
+        keyframe_offset: target.keyframes.len() as u32,
+        point_offset: target.points.len() as u32,
+        target_from_source: *target_from_source,
+        fused_markers: Vec::new(),
+        new_markers: Vec::new(),
+        fused_points: 0,
+    };
+    let rotation = target_from_source.rotation;
+    let mut absorbed = absorbed;
+    for k in &source.keyframes {
+        let mut k = k.clone();
+        k.id = absorbed.keyframe(k.id);
+        k.world_from_camera = target_from_source.compose(&k.world_from_camera);
+        for p in k.points.iter_mut().flatten() {
+            *p = absorbed.point(*p);
+        }
+        if let Some((parent, _)) = &mut k.parent {
+            *parent = absorbed.keyframe(*parent);
+        }
+        target.keyframes.push(k);
+    }
+    for p in &source.points {
+        let mut p = p.clone();
+        p.position = target_from_source.transform_point(&p.position);
+        p.normal = rotation * p.normal;
+        for (k, _) in &mut p.observations {
+            *k = absorbed.keyframe(*k);
+        }
+        p.first_keyframe = absorbed.keyframe(p.first_keyframe);
+        target.points.push(p);
+    }
+    target.culled_points += source.culled_points;
+    // Covisibility stays within each part until keyframes see points of both.
+    target
+        .neighbours
+        .resize(absorbed.keyframe_offset as usize, Vec::new());
+    for k in &source.keyframes {
+        target.neighbours.push(
+            source
+                .neighbours(k.id)
+                .iter()
+                .map(|&(k, shared)| (absorbed.keyframe(k), shared))
+                .collect(),
+        );
+    }
+    target.trajectory_starts.extend(
+        source
+            .trajectory_starts
+            .iter()
+            .map(|&k| absorbed.keyframe(k))
+            .chain(source.keyframes.first().map(|k| absorbed.keyframe(k.id))),
+    );
+    for m in source.markers.values() {
+        let sightings = m
+            .observations
+            .iter()
+            .map(|&(k, i)| (absorbed.keyframe(k), i));
+        match target.markers.get_mut(&m.id) {
+            Some(kept) => {
+                kept.observations.extend(sightings);
+                absorbed.fused_markers.push(m.id);
+            }
+            None => {
+                let mut moved = m.clone();
+                moved.world_from_marker = target_from_source.compose(&m.world_from_marker);
+                moved.observations = sightings.collect();
+                target.markers.insert(m.id, moved);
+                absorbed.new_markers.push(m.id);
+            }
+        }
+    }
+    let mut touched = std::collections::BTreeSet::new();
+    for m in &alignment.seam {
+        let moved = absorbed.point(m.source_point);
+        if target.point(moved).bad {
+            continue;
+        }
+        match target.keyframe(m.keyframe).points[m.keypoint] {
+            Some(kept) if !target.point(kept).bad => target.replace_point(moved, kept),
+            _ => target.add_observation(moved, m.keyframe, m.keypoint),
+        }
+        touched.insert(m.keyframe);
+        absorbed.fused_points += 1;
+    }
+    for k in touched {
+        target.refresh_neighbours(k);
+    }
+    absorbed
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::frame::tests::rig;
+    use crate::frame::Frame;
+    use nalgebra::{UnitQuaternion, Vector3};
+
+    fn frame(n: usize) -> Frame {
+        crate::map::tests::frame(n, &rig())
+    }
+
+    /// A building's markers: on walls facing different ways, metres apart.
+    fn building() -> Vec<(i32, Se3)> {
+        (0..6)
+            .map(|i| {
+                let yaw = f64::from(i) * 0.9;
+                let pose = Se3::new(
+                    UnitQuaternion::from_euler_angles(0.0, yaw, 0.3),
+                    Vector3::new(f64::from(i) * 1.7, (f64::from(i) * 0.7).sin() * 2.0, 1.2),
+                );
+                (10 + i, pose)
+            })
+            .collect()
+    }
+
+    /// A map of some of the building's markers in a frame of its own (`world_from_map` away
+    /// from the building's), with two keyframes that share two points and see every marker.
+    fn map_of(ids: &[i32], building_from_map: &Se3) -> Map {
+        let rig = rig();
+        let map_from_building = building_from_map.inverse();
+        let mut map = Map::default();
+        let a = map.add_keyframe(frame(4), map_from_building);
+        let b = map.add_keyframe(
+            frame(4),
+            map_from_building.compose(&Se3::exp(&nalgebra::Vector6::new(
+                0.3, 0.0, 0.0, 0.0, 0.1, 0.0,
+            ))),
+        );
+        for i in 0..2 {
+            let p = map.add_point(Vector3::new(i as f64, 0.5, 2.0), a, i, &rig);
+            map.add_observation(p, b, i);
+        }
+        map.refresh_neighbours(b);
+        for (id, pose) in building() {
+            if ids.contains(&id) {
+                map.markers.insert(
+                    id,
+                    MapMarker {
+                        id,
+                        side_m: 0.2,
+                        world_from_marker: map_from_building.compose(&pose),
+                        observations: vec![(a, 0), (b, 0)],
+                    },
+                );
+            }
+        }
+        map
+    }
+
+    fn transform() -> Se3 {
+        Se3::new(
+            UnitQuaternion::from_euler_angles(0.1, -0.2, 2.5),
+            Vector3::new(4.0, -3.0, 0.2),
+        )
+    }
+
+    #[test]
+    fn two_shared_markers_align_the_maps() {
+        let target = map_of(&[10, 11, 12, 13], &Se3::identity());
+        let source = map_of(&[12, 13, 14, 15], &transform());
+        let alignment = align_by_markers(&target, &source).unwrap();
+        assert_eq!(alignment.markers, vec![12, 13]);
+        assert!(alignment.disagreeing.is_empty());
+        assert!(alignment.marker_rms_m < 1e-9);
+        assert!(alignment.turned.is_empty());
+        // target_from_source is the building-from-source transform here.
+        let error = alignment.target_from_source.local(&transform());
+        assert!(error.norm() < 1e-9, "{error}");
+    }
+
+    #[test]
+    fn one_shared_marker_or_one_that_disagrees_is_not_enough() {
+        let target = map_of(&[10, 11, 12], &Se3::identity());
+        let source = map_of(&[12, 14], &transform());
+        // One marker, and no point of the source found in the target where it would put them.
+        assert_eq!(
+            align_by_markers(&target, &source),
+            Err(NoAlignment::Unconfirmed {
+                marker: 12,
+                point_inliers: 0
+            })
+        );
+        let source = map_of(&[14, 15], &transform());
+        assert_eq!(
+            align_by_markers(&target, &source),
+            Err(NoAlignment::TooFewShared { shared: vec![] })
+        );
+        // The same id printed twice: marker 11 is somewhere else in the source's building.
+        let mut source = map_of(&[11, 12, 14], &transform());
+        let elsewhere = Se3::new(UnitQuaternion::identity(), Vector3::new(3.0, 0.0, 0.0));
+        let moved = source.markers.get_mut(&11).unwrap();
+        moved.world_from_marker = elsewhere.compose(&moved.world_from_marker);
+        assert_eq!(
+            align_by_markers(&target, &source),
+            Err(NoAlignment::Disagree {
+                shared: vec![11, 12],
+                agreeing: vec![11]
+            })
+        );
+        // With a third shared marker the two that agree align the maps, the third is named.
+        let target = map_of(&[10, 11, 12, 13], &Se3::identity());
+        let mut source = map_of(&[11, 12, 13], &transform());
+        let moved = source.markers.get_mut(&11).unwrap();
+        moved.world_from_marker = elsewhere.compose(&moved.world_from_marker);
+        let alignment = align_by_markers(&target, &source).unwrap();
+        assert_eq!(alignment.markers, vec![12, 13]);
+        assert_eq!(alignment.disagreeing.len(), 1);
+        assert_eq!(alignment.disagreeing[0].0, 11);
+        assert!(alignment.disagreeing[0].1 > 2.0);
+    }
+
+    #[test]
+    fn a_turned_marker_is_at_its_place_but_does_not_vote() {
+        let target = map_of(&[10, 11, 12], &Se3::identity());
+        let mut source = map_of(&[10, 11, 12], &transform());
+        // Marker 12 turned 34° about its own normal: its centre stays.
+        let flipped = source.markers.get_mut(&12).unwrap();
+        flipped.world_from_marker = flipped.world_from_marker.compose(&Se3::new(
+            UnitQuaternion::from_euler_angles(0.0, 0.0, 0.6),
+            Vector3::zeros(),
+        ));
+        let alignment = align_by_markers(&target, &source).unwrap();
+        assert_eq!(alignment.markers, vec![10, 11, 12]);
+        assert_eq!(alignment.turned, vec![12]);
+        assert!(alignment.disagreeing.is_empty());
+        let error = alignment.target_from_source.local(&transform());
+        assert!(error.norm() < 1e-9, "{error}");
+        // Alone with another, it cannot make two agreeing markers.
+        let target = map_of(&[11, 12], &Se3::identity());
+        let mut source = map_of(&[11, 12], &transform());
+        let flipped = source.markers.get_mut(&12).unwrap();
+        flipped.world_from_marker = flipped.world_from_marker.compose(&Se3::new(
+            UnitQuaternion::from_euler_angles(0.0, 0.0, 0.6),
+            Vector3::zeros(),
+        ));
+        assert!(matches!(
+            align_by_markers(&target, &source),
+            Err(NoAlignment::Disagree { .. })
+        ));
+    }
+
+    #[test]
+    fn absorbing_keeps_everything_in_the_targets_frame() {
+        let mut target = map_of(&[10, 11, 12, 13], &Se3::identity());
+        let source = map_of(&[12, 13, 14, 15], &transform());
+        let (keyframes, points) = (target.keyframes.len(), target.points.len());
+        let alignment = align_by_markers(&target, &source).unwrap();
+        let moved_by = alignment.target_from_source;
+        assert!(moved_by.local(&transform()).norm() < 1e-9);
+        let absorbed = absorb(&mut target, &source, &alignment);
+        assert_eq!(absorbed.fused_points, 0);
+        assert_eq!(absorbed.keyframe_offset as usize, keyframes);
+        assert_eq!(absorbed.point_offset as usize, points);
+        assert_eq!(absorbed.fused_markers, vec![12, 13]);
+        assert_eq!(absorbed.new_markers, vec![14, 15]);
+        assert_eq!(target.keyframes.len(), 2 * keyframes);
+        assert_eq!(target.live_points(), 2 * points);
+        // Each absorbed keyframe is where the source had it, seen from the building.
+        for (k, original) in source.keyframes.iter().enumerate() {
+            let moved = target.keyframe(absorbed.keyframe(KeyFrameId(k as u32)));
+            let want = moved_by.compose(&original.world_from_camera);
+            assert!(moved.world_from_camera.local(&want).norm() < 1e-12);
+            assert_eq!(moved.id, absorbed.keyframe(original.id));
+        }
+        // Both copies of a point of the (shared) scene are at one place in the target.
+        for (p, original) in source.points.iter().enumerate() {
+            let moved = target.point(absorbed.point(MapPointId(p as u32)));
+            let want = moved_by.transform_point(&original.position);
+            assert!((moved.position - want).norm() < 1e-12);
+            for &(k, i) in &moved.observations {
+                assert_eq!(
+                    target.keyframe(k).points[i],
+                    Some(absorbed.point(MapPointId(p as u32)))
+                );
+            }
+        }
+        // A shared marker is one landmark seen from both parts; a new one is moved in.
+        assert_eq!(target.markers[&12].observations.len(), 4);
+        assert_eq!(target.markers[&14].observations.len(), 2);
+        let want = moved_by.compose(&source.markers[&14].world_from_marker);
+        assert!(target.markers[&14].world_from_marker.local(&want).norm() < 1e-12);
+        // Covisibility stays within each part; the source's first keyframe starts a trajectory.
+        let first = absorbed.keyframe(KeyFrameId(0));
+        assert!(target
+            .neighbours(first)
+            .iter()
+            .all(|(k, _)| k.0 >= absorbed.keyframe_offset));
+        assert!(!target.neighbours(first).is_empty());
+        assert!(target.trajectory_starts.contains(&first));
+    }
+
+    /// A wall of textured points 3 m in front of the building's origin with marker 10 in its
+    /// middle, seen by one keyframe from `camera` (building frame) into a map whose frame is
+    /// `building_from_map` away; `descriptor_seed` names the points' texture.
+    fn wall_map(camera: &Se3, building_from_map: &Se3, descriptor_seed: u64) -> Map {
+        use crate::triangulation::tests::{frame_of, Depth};
+        let rig = rig();
+        let wall: Vec<(Vector3<f64>, u64, Depth)> = (0..80)
+            .map(|i| {
+                let (x, y) = ((i % 10) as f64 * 0.22 - 1.0, (i / 10) as f64 * 0.18 - 0.65);
+                (
+                    Vector3::new(x, y, 3.0),
+                    descriptor_seed + i as u64,
+                    Depth::Measured,
+                )
+            })
+            .collect();
+        let (frame, _) = frame_of(&rig, camera, &wall);
+        let map_from_building = building_from_map.inverse();
+        let mut map = Map {
+            rig: Some(rig.clone()),
+            ..Map::default()
+        };
+        let pose = map_from_building.compose(camera);
+        let k = map.add_keyframe(frame, pose);
+        for i in 0..map.keyframe(k).frame.len() {
+            let p_c = map.keyframe(k).frame.back_project(i, &rig.camera).unwrap();
+            map.add_point(pose.transform_point(&p_c), k, i, &rig);
+        }
+        let facing = UnitQuaternion::from_euler_angles(std::f64::consts::PI, 0.0, 0.0);
+        let marker = Se3::new(facing, Vector3::new(0.05, 0.02, 2.99));
+        map.markers.insert(
+            10,
+            MapMarker {
+                id: 10,
+                side_m: 0.2,
+                world_from_marker: map_from_building.compose(&marker),
+                observations: vec![(k, 0)],
+            },
+        );
+        map
+    }
+
+    #[test]
+    fn one_shared_marker_confirmed_by_its_points_aligns_the_maps() {
+        let here = Se3::identity();
+        let beside = Se3::new(
+            UnitQuaternion::from_euler_angles(0.0, 0.1, 0.0),
+            Vector3::new(0.3, 0.0, 0.1),
+        );
+        let target = wall_map(&here, &Se3::identity(), 1000);
+        // The source's marker is a little off (as mapped markers are): the points correct it.
+        let mut source = wall_map(&beside, &transform(), 1000);
+        let nudge = Se3::new(
+            UnitQuaternion::from_euler_angles(0.0, 0.0, 0.01),
+            Vector3::new(0.01, 0.0, 0.0),
+        );
+        let marker = source.markers.get_mut(&10).unwrap();
+        marker.world_from_marker = marker.world_from_marker.compose(&nudge);
+        let alignment = align_by_markers(&target, &source).unwrap();
+        assert_eq!(alignment.markers, vec![10]);
+        assert!(
+            alignment.point_inliers >= MIN_POINT_INLIERS,
+            "{alignment:?}"
+        );
+        // The marker alone would be a centimetre and 0.6° off; the points bring it within a
+        // millimetre (the marker's four corners still take part in the fit).
+        let error = alignment.target_from_source.local(&transform());
+        assert!(error.norm() < 1e-3, "{error}");
+        // Absorbed, the points found again are one with the target's: the two keyframes,
+        // one from each map, share them.
+        assert_eq!(alignment.seam.len(), alignment.point_inliers);
+        let mut merged = target.clone();
+        let absorbed = absorb(&mut merged, &source, &alignment);
+        assert_eq!(absorbed.fused_points, alignment.point_inliers);
+        let theirs = absorbed.keyframe(KeyFrameId(0));
+        let shared = merged
+            .neighbours(KeyFrameId(0))
+            .iter()
+            .find(|(k, _)| *k == theirs)
+            .map_or(0, |(_, n)| *n);
+        assert_eq!(shared, alignment.point_inliers);
+        assert_eq!(
+            merged.live_points(),
+            target.live_points() + source.live_points() - shared
+        );
+        // Another texture around the same id: the marker alone is not believed.
+        let elsewhere = wall_map(&beside, &transform(), 5000);
+        assert!(matches!(
+            align_by_markers(&target, &elsewhere),
+            Err(NoAlignment::Unconfirmed { marker: 10, .. })
+        ));
+    }
+
+    #[test]
+    fn a_marker_turned_in_one_map_yields_to_one_the_points_confirm() {
+        let beside = Se3::new(
+            UnitQuaternion::from_euler_angles(0.0, 0.1, 0.0),
+            Vector3::new(0.3, 0.0, 0.1),
+        );
+        let mut target = wall_map(&Se3::identity(), &Se3::identity(), 1000);
+        let mut source = wall_map(&beside, &transform(), 1000);
+        // Marker 11 on the same wall, right in both maps; marker 10 turned 34° in the source.
+        let eleven = Se3::new(
+            UnitQuaternion::from_euler_angles(std::f64::consts::PI, 0.0, 0.0),
+            Vector3::new(-0.6, 0.3, 2.99),
+        );
+        for (map, map_from_building) in [
+            (&mut target, Se3::identity()),
+            (&mut source, transform().inverse()),
+        ] {
+            let seen_by = map.markers[&10].observations.clone();
+            map.markers.insert(
+                11,
+                MapMarker {
+                    id: 11,
+                    side_m: 0.2,
+                    world_from_marker: map_from_building.compose(&eleven),
+                    observations: seen_by,
+                },
+            );
+        }
+        let turned = source.markers.get_mut(&10).unwrap();
+        turned.world_from_marker = turned.world_from_marker.compose(&Se3::new(
+            UnitQuaternion::from_euler_angles(0.0, 0.0, 0.6),
+            Vector3::zeros(),
+        ));
+        let alignment = align_by_markers(&target, &source).unwrap();
+        assert_eq!(alignment.markers, vec![10, 11]);
+        assert_eq!(alignment.turned, vec![10]);
+        assert!(
+            alignment.point_inliers >= MIN_POINT_INLIERS,
+            "{alignment:?}"
+        );
+        let error = alignment.target_from_source.local(&transform());
+        assert!(error.norm() < 1e-6, "{error}");
+    }
+}
