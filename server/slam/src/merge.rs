@@ -6,9 +6,10 @@
 //! marker mapped in both maps names one place. One id is not proof (an id printed twice, a
 //! misread one), so the maps are aligned only when at least [`MIN_SHARED_MARKERS`] shared
 //! markers agree on one rigid transform, or one marker and the points around it, found again
-//! in the other map where the marker puts them. The joined map keeps both maps' keyframes, points and
-//! sightings; a marker in both is one landmark with the sightings of both, so the next
-//! whole-map optimisation pulls the two parts together where they meet.
+//! in the other map where the marker puts them. The joined map keeps both maps' keyframes,
+//! points and sightings; a marker in both is one landmark with the sightings of both, and a
+//! point found in both is one point, so the whole-map optimisation holds the two parts
+//! together where they meet.
 
 use crate::frame::Rig;
 use crate::map::{KeyFrameId, Map, MapMarker, MapPointId};
