@@ -311,6 +311,12 @@ pub struct MergeRow {
     /// move of a keyframe, metres.
     pub optimised: Option<bool>,
     pub moved_max_m: Option<f64>,
+    /// Live keyframes of the target and of the source before the merge.
+    pub keyframes: (usize, usize),
+    /// Milliseconds on the target's writer: aligning, moving the source in, optimising.
+    pub align_ms: f64,
+    pub absorb_ms: f64,
+    pub optimise_ms: f64,
 }
 
 /// Every robot of a scenario, one after the other, mapping into one server's maps; the maps
@@ -426,6 +432,10 @@ pub fn run_together(
                             fused_points: o.absorbed.fused_points,
                             optimised: o.whole_map.as_ref().map(|w| w.applied),
                             moved_max_m: o.whole_map.as_ref().map(|w| w.moved_max_m),
+                            keyframes: o.keyframes,
+                            align_ms: o.align_time.as_secs_f64() * 1e3,
+                            absorb_ms: o.absorb_time.as_secs_f64() * 1e3,
+                            optimise_ms: o.optimise_time.as_secs_f64() * 1e3,
                         });
                         continue 'again;
                     }
@@ -498,7 +508,8 @@ pub fn print_together(run: &TogetherRun) {
         println!(
             "merged map {} into map {}: markers {:?} at one place ({:.3} m RMS; turned in one map: \
              {:?}), {:?} not; {} points confirm; {} markers fused, {} new, {} points fused; \
-             whole map optimised: {:?}, moved at most {:?} m",
+             whole map optimised: {:?}, moved at most {:?} m; keyframes {} + {}, ms: align \
+             {:.1}, absorb {:.1}, optimise {:.1}",
             m.source,
             m.target,
             m.markers,
@@ -510,7 +521,12 @@ pub fn print_together(run: &TogetherRun) {
             m.new_markers,
             m.fused_points,
             m.optimised,
-            m.moved_max_m
+            m.moved_max_m,
+            m.keyframes.0,
+            m.keyframes.1,
+            m.align_ms,
+            m.absorb_ms,
+            m.optimise_ms
         );
     }
     for (target, source, why) in &run.not_merged {

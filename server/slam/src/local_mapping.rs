@@ -19,7 +19,7 @@ use crate::triangulation;
 use crate::walls::WallPrior;
 use crate::worker::Worker;
 use std::collections::HashSet;
-use std::time::Duration;
+use std::time::{Duration, Instant};
 use vsgraphs_optim::Se3;
 
 /// Levenberg–Marquardt iterations of a whole-map optimisation: it starts from the map as local
@@ -147,6 +147,12 @@ pub struct MergeOutcome {
     pub absorbed: merge::Absorbed,
     /// The whole-map optimisation that pulled the two parts together, when one ran.
     pub whole_map: Option<global::GlobalReport>,
+    /// Keyframes of the map and of the one joined to it, before the merge.
+    pub keyframes: (usize, usize),
+    /// Time aligning the maps, moving the source in, and optimising the whole map.
+    pub align_time: Duration,
+    pub absorb_time: Duration,
+    pub optimise_time: Duration,
 }
 
 impl LocalMapper {
@@ -170,11 +176,17 @@ impl LocalMapper {
     /// where they share markers and points (this map's newest keyframe and its window hold
     /// still: the part moved in comes to it). Nothing changes when the maps do not align.
     pub fn absorb(&mut self, map: &mut Map, source: &Map) -> Result<MergeOutcome, TrackError> {
+        let keyframes = (map.live_keyframes(), source.live_keyframes());
+        let started = Instant::now();
         let alignment = merge::align_by_markers(map, source)?;
+        let align_time = started.elapsed();
         self.finish_local_ba(map)?;
         self.land_whole_map(map, true);
         let newest = newest_live(map);
+        let started = Instant::now();
         let absorbed = merge::absorb(map, source, &alignment);
+        let absorb_time = started.elapsed();
+        let started = Instant::now();
         let whole_map = match (map.rig.clone(), newest) {
             (Some(rig), Some(newest)) => {
                 let hold: HashSet<KeyFrameId> = std::iter::once(newest)
@@ -196,6 +208,10 @@ impl LocalMapper {
             alignment,
             absorbed,
             whole_map,
+            keyframes,
+            align_time,
+            absorb_time,
+            optimise_time: started.elapsed(),
         })
     }
 
