@@ -302,7 +302,8 @@ pub fn run_frames(
 /// A run's poses, each moved with its anchor keyframe in the map that keyframe is in now,
 /// following the merges of `service` (the run's maps must be `service`'s): the best estimate
 /// once the maps of several runs were merged. Each pose's `map` is then the server's id of
-/// that map; a pose without an anchor, or whose map is gone, keeps its pose as tracked.
+/// that map; a pose without an anchor, or whose map is gone, is left out (its robot-local map
+/// index could be taken for a server id).
 pub fn refined_after_merges(
     service: &MapService,
     summary: &OfflineSummary,
@@ -313,33 +314,26 @@ pub fn refined_after_merges(
         .as_tracked
         .iter()
         .zip(&poses.anchors)
-        .map(|(pose, anchor)| {
-            let mut pose = *pose;
-            let Some(view) = summary.map_views.get(pose.map as usize) else {
-                return pose;
-            };
-            let Some(anchor) = anchor else {
-                return pose;
-            };
+        .filter_map(|(pose, anchor)| {
+            let view = summary.map_views.get(pose.map as usize)?;
+            let anchor = anchor.as_ref()?;
             let (map, keyframe) = service.resolve(vsgraphs_slam::MapId(view.id), anchor.keyframe);
             let latest = views
                 .entry(map)
                 .or_insert_with(|| service.snapshot(map))
-                .clone();
-            let moved = latest.and_then(|v| {
-                crate::model::anchored_in_view(
-                    &v,
-                    &vsgraphs_slam::Anchor {
-                        keyframe,
-                        keyframe_from_camera: anchor.keyframe_from_camera,
-                    },
-                )
-            });
-            if let Some(p) = moved {
-                pose.map = map.0;
-                pose.world_from_camera = crate::model::api_pose(&p);
-            }
-            pose
+                .clone()?;
+            let moved = crate::model::anchored_in_view(
+                &latest,
+                &vsgraphs_slam::Anchor {
+                    keyframe,
+                    keyframe_from_camera: anchor.keyframe_from_camera,
+                },
+            )?;
+            Some(TrajectoryPose {
+                map: map.0,
+                world_from_camera: crate::model::api_pose(&moved),
+                ..*pose
+            })
         })
         .collect()
 }
