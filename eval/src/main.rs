@@ -218,6 +218,13 @@ enum Command {
     },
 }
 
+/// Creates `dir` and writes a scenario run's building model there (`model.json`).
+fn write_model(dir: &std::path::Path, model: &BuildingModel) -> anyhow::Result<()> {
+    std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
+    std::fs::write(dir.join("model.json"), serde_json::to_string_pretty(model)?)
+        .with_context(|| format!("writing {}", dir.join("model.json").display()))
+}
+
 fn main() -> anyhow::Result<()> {
     // Logs of the server's pipeline (scenario runs) go to stderr; RUST_LOG chooses.
     tracing_subscriber::fmt()
@@ -298,12 +305,7 @@ fn main() -> anyhow::Result<()> {
                     },
                 )?;
                 if let Some(dir) = out {
-                    std::fs::create_dir_all(&dir)
-                        .with_context(|| format!("creating {}", dir.display()))?;
-                    std::fs::write(
-                        dir.join("model.json"),
-                        serde_json::to_string_pretty(&run.model)?,
-                    )?;
+                    write_model(&dir, &run.model)?;
                 }
                 if json {
                     println!("{}", serde_json::to_string_pretty(&run)?);
@@ -318,16 +320,11 @@ fn main() -> anyhow::Result<()> {
                 }
             })?;
             if let Some(dir) = out {
-                std::fs::create_dir_all(&dir)
-                    .with_context(|| format!("creating {}", dir.display()))?;
+                write_model(&dir, &run.model)?;
                 run.estimate.write_tum(&dir.join("estimate.txt"))?;
                 run.estimate_as_tracked
                     .write_tum(&dir.join("estimate_as_tracked.txt"))?;
                 run.reference.write_tum(&dir.join("groundtruth.txt"))?;
-                std::fs::write(
-                    dir.join("model.json"),
-                    serde_json::to_string_pretty(&run.model)?,
-                )?;
             }
             if json {
                 println!("{}", serde_json::to_string_pretty(&run)?);
