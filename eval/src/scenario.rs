@@ -12,7 +12,7 @@ use serde::Serialize;
 use std::sync::mpsc;
 use std::time::Duration;
 use vsgraphs_datasets::Trajectory;
-use vsgraphs_pipeline::maps::MapService;
+use vsgraphs_pipeline::maps::{MapService, MergeReport};
 use vsgraphs_pipeline::offline::{self, FrameSource, OfflineFrame, OfflineSummary, Trajectories};
 use vsgraphs_pipeline::PipelineConfig;
 use vsgraphs_proto::model::BuildingModel;
@@ -329,8 +329,9 @@ pub struct TogetherRun {
     pub not_merged: Vec<(u32, u32, String)>,
     /// Maps left at the end.
     pub maps: usize,
-    /// The map with the most keyframes at the end, which is scored.
+    /// The map with the most keyframes at the end, which is scored, and its live keyframes.
     pub final_map: Option<u32>,
+    pub final_keyframes: usize,
     /// ATE of every robot's poses in the final map, with one alignment for all.
     pub ate: Option<Report>,
     pub semantics: Option<SemanticReport>,
@@ -368,7 +369,8 @@ pub fn run_together(
         .context("reading the building's ground truth as a model")?;
     let dictionary = dictionary_for(&building, options.dictionary)?;
     let service = MapService::with_semantics(config.semantics.enabled, dictionary.clone())
-        .with_whole_map_optimisation(config.semantics.optimise_every_keyframes);
+        .with_whole_map_optimisation(config.semantics.optimise_every_keyframes)
+        .with_live_merges(config.atlas.merge_maps);
     let mut runs = Vec::new();
     for (r, walk) in walks.iter().enumerate() {
         let total = options
@@ -405,8 +407,8 @@ pub fn run_together(
             ate_alone_rmse,
         ));
     }
-    // Every pair of maps, the older as the target, until no more merge.
-    let mut merges = Vec::new();
+    // Maps merged as robots mapped (live merges), then every pair left, the older as the
+    // target, until no more merge.
     let mut not_merged = Vec::new();
     let mut tried = std::collections::HashSet::new();
     'again: loop {
@@ -417,34 +419,14 @@ pub fn run_together(
                     continue;
                 }
                 match service.merge(target, source) {
-                    Ok(report) => {
-                        let o = &report.outcome;
-                        merges.push(MergeRow {
-                            target: target.0,
-                            source: source.0,
-                            markers: o.alignment.markers.clone(),
-                            disagreeing: o.alignment.disagreeing.clone(),
-                            turned: o.alignment.turned.clone(),
-                            marker_rms_m: o.alignment.marker_rms_m,
-                            point_inliers: o.alignment.point_inliers,
-                            fused_markers: o.absorbed.fused_markers.len(),
-                            new_markers: o.absorbed.new_markers.len(),
-                            fused_points: o.absorbed.fused_points,
-                            optimised: o.whole_map.as_ref().map(|w| w.applied),
-                            moved_max_m: o.whole_map.as_ref().map(|w| w.moved_max_m),
-                            keyframes: o.keyframes,
-                            align_ms: o.align_time.as_secs_f64() * 1e3,
-                            absorb_ms: o.absorb_time.as_secs_f64() * 1e3,
-                            optimise_ms: o.optimise_time.as_secs_f64() * 1e3,
-                        });
-                        continue 'again;
-                    }
+                    Ok(_) => continue 'again,
                     Err(e) => not_merged.push((target.0, source.0, e.to_string())),
                 }
             }
         }
         break;
     }
+    let merges = service.merges().iter().map(merge_row).collect();
     let final_map = service
         .all()
         .into_iter()
@@ -484,11 +466,36 @@ pub fn run_together(
         not_merged,
         maps: service.len(),
         final_map: final_map.map(|id| id.0),
+        final_keyframes: final_map
+            .and_then(|id| service.snapshot(id))
+            .map_or(0, |view| view.keyframe_count as usize),
         ate,
         semantics,
         semantics_error,
         model,
     })
+}
+
+fn merge_row(report: &MergeReport) -> MergeRow {
+    let o = &report.outcome;
+    MergeRow {
+        target: report.target.0,
+        source: report.source.0,
+        markers: o.alignment.markers.clone(),
+        disagreeing: o.alignment.disagreeing.clone(),
+        turned: o.alignment.turned.clone(),
+        marker_rms_m: o.alignment.marker_rms_m,
+        point_inliers: o.alignment.point_inliers,
+        fused_markers: o.absorbed.fused_markers.len(),
+        new_markers: o.absorbed.new_markers.len(),
+        fused_points: o.absorbed.fused_points,
+        optimised: o.whole_map.as_ref().map(|w| w.applied),
+        moved_max_m: o.whole_map.as_ref().map(|w| w.moved_max_m),
+        keyframes: o.keyframes,
+        align_ms: o.align_time.as_secs_f64() * 1e3,
+        absorb_ms: o.absorb_time.as_secs_f64() * 1e3,
+        optimise_ms: o.optimise_time.as_secs_f64() * 1e3,
+    }
 }
 
 pub fn print_together(run: &TogetherRun) {

@@ -375,6 +375,35 @@ pub struct MapSummary {
     pub corridors: u64,
 }
 
+/// Two maps of the server made one, in `GET /api/v1/merges`: the source map was moved into the
+/// target's frame and joined to it, and the robots mapping in it went on in the target.
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+#[cfg_attr(feature = "openapi", derive(ToSchema))]
+pub struct MapMerge {
+    pub target: u32,
+    pub source: u32,
+    /// When it was made (ns since the Unix epoch, the server's clock).
+    pub at_ns: u64,
+    /// Markers both maps held that put one map in the other, and of those the ones turned in
+    /// one map; markers both held that disagree.
+    pub markers: Vec<i32>,
+    pub turned: Vec<i32>,
+    pub disagreeing: Vec<i32>,
+    /// RMS distance between the agreeing markers' centres once aligned, metres.
+    pub marker_rms_m: f64,
+    /// Points of the source found again in the target where the alignment puts them, each
+    /// now one point.
+    pub point_inliers: u64,
+    /// Live keyframes of the target and of the source before the merge.
+    pub target_keyframes: u64,
+    pub source_keyframes: u64,
+    /// Largest move of a keyframe in the merged map's optimisation, metres (none when it was
+    /// not applied).
+    pub moved_max_m: Option<f64>,
+    /// Time on the target's writer: aligning, joining and optimising, milliseconds.
+    pub duration_ms: f64,
+}
+
 /// The way from one room or corridor to another, `GET /api/v1/maps/{map_id}/route`: the spaces
 /// passed, both ends included, and the doorway between each two.
 #[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]

@@ -3,8 +3,8 @@
 use serde::de::DeserializeOwned;
 use thiserror::Error;
 use vsgraphs_proto::api::{
-    ApiError, DictionaryInfo, FrameDetections, Health, MapDoorway, MapSpace, MapSummary, MapView,
-    MapWall, RobotStatus, Route, SceneGraph, TrajectoryPose,
+    ApiError, DictionaryInfo, FrameDetections, Health, MapDoorway, MapMerge, MapSpace, MapSummary,
+    MapView, MapWall, RobotStatus, Route, SceneGraph, TrajectoryPose,
 };
 use vsgraphs_proto::model::BuildingModel;
 
@@ -95,6 +95,11 @@ impl Client {
     /// Every map of the server, with the robots that mapped in it.
     pub async fn server_maps(&self) -> Result<Vec<MapSummary>, ClientError> {
         self.get("/api/v1/maps").await
+    }
+
+    /// Every merge of two of the server's maps so far, oldest first.
+    pub async fn merges(&self) -> Result<Vec<MapMerge>, ClientError> {
+        self.get("/api/v1/merges").await
     }
 
     /// A map's rooms and corridors, by the map's id on the server.

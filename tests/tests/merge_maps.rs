@@ -1,7 +1,9 @@
 //! Two robots map one building, each a wing of it (`tests/data/two_wings.json`: a corridor with
 //! a room at each end; each robot tours its room and walks the corridor past the middle and
-//! back). Each robot's map holds one room; the server's maps are then merged where they share
-//! markers, and the merged map holds the whole building, both trajectories in one frame.
+//! back), one after the other into one server's maps. Each robot's map holds one room; once the
+//! second robot maps a marker the first mapped, the maps are merged while it walks, it goes on
+//! mapping in the merged map, and that map holds the whole building, both trajectories in one
+//! frame.
 
 use vsgraphs_eval::scenario::{self, ScenarioOptions};
 use vsgraphs_eval::semantics::SemanticReport;
@@ -40,6 +42,13 @@ fn two_robots_maps_merge_into_one_building() {
         "{merge:?}"
     );
     assert!(merge.disagreeing.is_empty(), "{merge:?}");
+    // Merged while the second robot walked: keyframes were added to the merged map after it.
+    let (target, source) = merge.keyframes;
+    assert!(
+        run.final_keyframes > target + source,
+        "{} keyframes at the end, {target} + {source} at the merge",
+        run.final_keyframes
+    );
     for r in &run.robots {
         assert_eq!(r.in_final_map, r.tracked, "{}", r.robot);
     }

@@ -1,6 +1,6 @@
 //! The server's one configuration file (TOML). `config/vsgraphs.toml` documents every field with
 //! its default; a test keeps that file and [`Config::default`] equal. The `[markers]`,
-//! `[tracking]` and `[semantics]` sections are the frame pipeline's
+//! `[tracking]`, `[semantics]` and `[atlas]` sections are the frame pipeline's
 //! ([`vsgraphs_pipeline::config`]).
 
 use serde::{Deserialize, Serialize};
@@ -9,7 +9,8 @@ use std::path::Path;
 use thiserror::Error;
 use vsgraphs_pipeline::config::{read_toml, FileError, InvalidField};
 pub use vsgraphs_pipeline::config::{
-    DepthResidualSetting, MarkerConfig, PipelineConfig, SemanticsConfig, TrackingConfig,
+    AtlasConfig, DepthResidualSetting, MarkerConfig, PipelineConfig, SemanticsConfig,
+    TrackingConfig,
 };
 pub use vsgraphs_sdk::zenoh_config::ZenohSettings;
 
@@ -22,6 +23,7 @@ pub struct Config {
     pub markers: MarkerConfig,
     pub tracking: TrackingConfig,
     pub semantics: SemanticsConfig,
+    pub atlas: AtlasConfig,
 }
 
 impl Default for Config {
@@ -36,6 +38,7 @@ impl Default for Config {
             markers: MarkerConfig::default(),
             tracking: TrackingConfig::default(),
             semantics: SemanticsConfig::default(),
+            atlas: AtlasConfig::default(),
         }
     }
 }
@@ -106,6 +109,7 @@ impl Config {
             markers: self.markers.clone(),
             tracking: self.tracking.clone(),
             semantics: self.semantics.clone(),
+            atlas: self.atlas.clone(),
         }
     }
 

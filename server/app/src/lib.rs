@@ -49,7 +49,8 @@ impl Server {
             tracing::warn!(warning, "semantic dictionary");
         }
         let maps = MapService::with_semantics(config.semantics.enabled, dictionary)
-            .with_whole_map_optimisation(config.semantics.optimise_every_keyframes);
+            .with_whole_map_optimisation(config.semantics.optimise_every_keyframes)
+            .with_live_merges(config.atlas.merge_maps);
         vsgraphs_pipeline::FrameProcessor::new(
             &config.markers,
             &config.tracking,

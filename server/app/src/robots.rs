@@ -167,8 +167,27 @@ impl RobotEntry {
         status.keyframes = tracking.keyframes as u64;
         status.map_points = tracking.map_points as u64;
         status.markers = tracking.markers as u64;
-        if let Some(snapshots) = &tracking.map_snapshots {
-            state.maps.insert(snapshots.latest().map, snapshots.clone());
+        // Maps of the robot merged into others: its poses in them move with them.
+        for followed in tracking.result.iter().flat_map(|r| &r.followed) {
+            for (pose, anchor) in state.trajectory.iter_mut() {
+                if pose.map != followed.index as u32 {
+                    continue;
+                }
+                let moved = followed.pose(&vsgraphs_pipeline::model::se3_from_api(
+                    &pose.world_from_camera,
+                ));
+                pose.world_from_camera = vsgraphs_pipeline::model::api_pose(&moved);
+                if let Some(a) = anchor {
+                    *a = followed.anchor(a);
+                }
+            }
+        }
+        for (index, snapshots) in &tracking.followed_snapshots {
+            state.maps.insert(*index as u32, snapshots.clone());
+        }
+        if let (Some(snapshots), Some(result)) = (&tracking.map_snapshots, &tracking.result) {
+            // By the robot's index of the map: a map another robot started carries its label.
+            state.maps.insert(result.map as u32, snapshots.clone());
         }
         if let Some(error) = &tracking.error {
             status.last_event = Some(format!("error: {error}"));

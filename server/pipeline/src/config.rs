@@ -22,6 +22,23 @@ pub struct PipelineConfig {
     pub markers: MarkerConfig,
     pub tracking: TrackingConfig,
     pub semantics: SemanticsConfig,
+    pub atlas: AtlasConfig,
+}
+
+/// The server's maps together.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct AtlasConfig {
+    /// Merge two maps as soon as they share markers that place one in the other (checked
+    /// after each keyframe that maps a marker another map holds); the robots of the map merged
+    /// away go on in the other. Off: maps are merged only when asked.
+    pub merge_maps: bool,
+}
+
+impl Default for AtlasConfig {
+    fn default() -> Self {
+        Self { merge_maps: true }
+    }
 }
 
 /// The S-Graph's semantic layer.

@@ -12,9 +12,9 @@
 
 use crate::model;
 use std::any::Any;
-use std::collections::BTreeMap;
+use std::collections::{BTreeMap, BTreeSet};
 use std::panic::{catch_unwind, AssertUnwindSafe};
-use std::sync::atomic::{AtomicU32, Ordering};
+use std::sync::atomic::{AtomicBool, AtomicU32, Ordering};
 use std::sync::{mpsc, Arc, Mutex, MutexGuard, RwLock};
 use std::thread::JoinHandle;
 use vsgraphs_proto::api::MapView;
@@ -22,8 +22,8 @@ use vsgraphs_semantics::{Dictionary, SemanticMap};
 use vsgraphs_slam::local_mapping::{MergeOutcome, PointStatistics};
 use vsgraphs_slam::walls::WallPrior;
 use vsgraphs_slam::{
-    KeyFrameId, LocalMapper, Map, MapId, MapReply, MapRequest, MapWriter, MappingConfig, SharedMap,
-    TrackError,
+    KeyFrameId, LocalMapper, Map, MapId, MapMove, MapReply, MapRequest, MapWriter, MappingConfig,
+    SharedMap, TrackError,
 };
 
 /// Every map of the server. Cloning gives another handle to the same service.
@@ -38,6 +38,17 @@ struct Inner {
     maps: Mutex<BTreeMap<MapId, Arc<MapEntry>>>,
     /// Maps merged into others, and where their keyframes went.
     merged: Mutex<BTreeMap<MapId, Merged>>,
+    /// The same, with the map they went into, for robots still tracking in them.
+    moves: Mutex<BTreeMap<MapId, MapMove>>,
+    /// Every merge so far, oldest first.
+    merge_log: Mutex<Vec<MergeReport>>,
+    /// Merges run one at a time; held for the length of one.
+    merging: Mutex<()>,
+    /// Merge maps as soon as they share markers ([`MapService::merge_where_shared`]).
+    merge_live: AtomicBool,
+    /// Pairs of maps tried, with how many markers they shared then: a pair is tried again only
+    /// once it shares more.
+    tried: Mutex<BTreeMap<(MapId, MapId), usize>>,
     semantics: Arc<RwLock<Semantics>>,
 }
 
@@ -54,7 +65,35 @@ pub struct Merged {
 pub struct MergeReport {
     pub target: MapId,
     pub source: MapId,
+    /// When it was made, ns since the Unix epoch.
+    pub at_ns: u64,
     pub outcome: MergeOutcome,
+}
+
+impl MergeReport {
+    /// As the API reports it.
+    pub fn api(&self) -> vsgraphs_proto::api::MapMerge {
+        let o = &self.outcome;
+        let ms = |d: std::time::Duration| d.as_secs_f64() * 1e3;
+        vsgraphs_proto::api::MapMerge {
+            target: self.target.0,
+            source: self.source.0,
+            at_ns: self.at_ns,
+            markers: o.alignment.markers.clone(),
+            turned: o.alignment.turned.clone(),
+            disagreeing: o.alignment.disagreeing.iter().map(|&(id, _)| id).collect(),
+            marker_rms_m: o.alignment.marker_rms_m,
+            point_inliers: o.alignment.point_inliers as u64,
+            target_keyframes: o.keyframes.0 as u64,
+            source_keyframes: o.keyframes.1 as u64,
+            moved_max_m: o
+                .whole_map
+                .as_ref()
+                .filter(|w| w.applied)
+                .map(|w| w.moved_max_m),
+            duration_ms: ms(o.align_time) + ms(o.absorb_time) + ms(o.optimise_time),
+        }
+    }
 }
 
 /// The semantic layer's settings, which every writer reads at each request.
@@ -256,9 +295,15 @@ impl MapService {
     /// the other ([`vsgraphs_slam::merge`]): `source`'s writer lands what it has pending and
     /// stops, `target`'s moves its keyframes, points and markers in and optimises the whole
     /// map, and `source` leaves the service ([`MapService::merged`] says where it went). Maps
-    /// that do not align are left as they were. A robot still tracking in `source` cannot map
-    /// there any more (it is told the writer stopped); robots are not moved to `target` yet.
+    /// that do not align are left as they were. A robot tracking in `source` follows it into
+    /// `target` at its next frame ([`MapWriter::moved`]).
     pub fn merge(&self, target: MapId, source: MapId) -> Result<MergeReport, TrackError> {
+        let _one_at_a_time = lock(&self.inner.merging);
+        self.merge_now(target, source)
+    }
+
+    /// [`MapService::merge`], with the service's merge lock held.
+    fn merge_now(&self, target: MapId, source: MapId) -> Result<MergeReport, TrackError> {
         if target == source {
             return Err(TrackError::Writer(format!(
                 "map {} cannot be merged into itself",
@@ -303,6 +348,15 @@ impl MapService {
             into_from_merged: outcome.absorbed.target_from_source,
         };
         lock(&self.inner.merged).insert(source, record);
+        lock(&self.inner.moves).insert(
+            source,
+            MapMove {
+                into: into.map.clone(),
+                keyframe_offset: outcome.absorbed.keyframe_offset,
+                point_offset: outcome.absorbed.point_offset,
+                into_from_merged: outcome.absorbed.target_from_source,
+            },
+        );
         lock(&self.inner.maps).remove(&source);
         tracing::info!(
             target = target.0,
@@ -312,11 +366,92 @@ impl MapService {
             point_inliers = outcome.alignment.point_inliers,
             "maps merged"
         );
-        Ok(MergeReport {
+        let report = MergeReport {
             target,
             source,
+            at_ns: std::time::SystemTime::now()
+                .duration_since(std::time::UNIX_EPOCH)
+                .map_or(0, |d| d.as_nanos() as u64),
             outcome,
-        })
+        };
+        lock(&self.inner.merge_log).push(report.clone());
+        Ok(report)
+    }
+
+    /// Merges maps as soon as they share markers (see [`MapService::merge_where_shared`]), or
+    /// only when asked ([`MapService::merge`]).
+    pub fn with_live_merges(self, live: bool) -> Self {
+        self.inner.merge_live.store(live, Ordering::Relaxed);
+        self
+    }
+
+    /// Every merge so far, oldest first.
+    pub fn merges(&self) -> Vec<MergeReport> {
+        lock(&self.inner.merge_log).clone()
+    }
+
+    /// Merges map `map` with every other map that holds a marker it holds, when live merges
+    /// are on: the map with more keyframes takes the other in (the older on a tie). Called
+    /// after a keyframe changed `map`; a pair that did not align is tried again only once it
+    /// shares more markers, so a map that keeps mapping costs a look at each map's marker ids.
+    /// Returns the merges made.
+    pub fn merge_where_shared(&self, map: MapId) -> Vec<MergeReport> {
+        if !self.inner.merge_live.load(Ordering::Relaxed) {
+            return Vec::new();
+        }
+        let _one_at_a_time = lock(&self.inner.merging);
+        let mut made = Vec::new();
+        let mut current = map;
+        'again: loop {
+            let views: Vec<(MapId, Arc<MapView>)> = self
+                .all()
+                .into_iter()
+                .map(|(id, s)| (id, s.latest()))
+                .collect();
+            let Some(here) = views.iter().find(|(id, _)| *id == current) else {
+                break;
+            };
+            let ids =
+                |view: &MapView| -> BTreeSet<i32> { view.markers.iter().map(|m| m.id).collect() };
+            let own = ids(&here.1);
+            for (other, view) in &views {
+                if *other == current {
+                    continue;
+                }
+                let shared = own.intersection(&ids(view)).count();
+                let pair = (current.min(*other), current.max(*other));
+                let before = lock(&self.inner.tried).get(&pair).copied().unwrap_or(0);
+                if shared <= before {
+                    continue;
+                }
+                lock(&self.inner.tried).insert(pair, shared);
+                let larger = |a: &MapView, b: &MapView| {
+                    (a.keyframe_count, std::cmp::Reverse(a.id))
+                        > (b.keyframe_count, std::cmp::Reverse(b.id))
+                };
+                let (target, source) = if larger(&here.1, view) {
+                    (current, *other)
+                } else {
+                    (*other, current)
+                };
+                match self.merge_now(target, source) {
+                    Ok(report) => {
+                        made.push(report);
+                        current = target;
+                        continue 'again;
+                    }
+                    Err(error) => tracing::debug!(
+                        target = target.0,
+                        source = source.0,
+                        shared,
+                        %error,
+                        "maps that share markers were not merged"
+                    ),
+                }
+            }
+            break;
+        }
+        made
     }
 
     /// Where a merged map went (`None` for a map that was not merged).
@@ -377,6 +512,10 @@ impl Drop for Inner {
 }
 
 impl MapWriter for MapService {
+    fn moved(&self, map: &SharedMap) -> Option<MapMove> {
+        lock(&self.inner.moves).get(&map.id()).cloned()
+    }
+
     fn create_map(
         &mut self,
         settings: &MappingConfig,

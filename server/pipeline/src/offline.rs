@@ -168,7 +168,8 @@ pub fn run_frames(
     let maps = match source.maps {
         Some(shared) => shared.clone(),
         None => MapService::with_semantics(config.semantics.enabled, source.dictionary.cloned())
-            .with_whole_map_optimisation(config.semantics.optimise_every_keyframes),
+            .with_whole_map_optimisation(config.semantics.optimise_every_keyframes)
+            .with_live_merges(config.atlas.merge_maps),
     };
     let mut processor = FrameProcessor::new(
         &config.markers,
@@ -250,6 +251,9 @@ pub fn run_frames(
                         .events
                         .push((timestamp_ns as f64 * 1e-9, event.clone()));
                 }
+                for followed in &r.followed {
+                    follow_merge(&mut poses, &mut anchors, followed);
+                }
                 r.world_from_camera.map(|p| (r.map, p, r.anchor))
             });
             match (tracking.state, pose) {
@@ -297,6 +301,24 @@ pub fn run_frames(
             anchors,
         },
     ))
+}
+
+/// Moves the poses and anchors of a robot's map into the map it was merged into.
+fn follow_merge(
+    poses: &mut [TrajectoryPose],
+    anchors: &mut [Option<vsgraphs_slam::Anchor>],
+    followed: &vsgraphs_slam::FollowedMerge,
+) {
+    for (pose, anchor) in poses.iter_mut().zip(anchors) {
+        if pose.map != followed.index as u32 {
+            continue;
+        }
+        let moved = followed.pose(&crate::model::se3_from_api(&pose.world_from_camera));
+        pose.world_from_camera = crate::model::api_pose(&moved);
+        if let Some(a) = anchor {
+            *a = followed.anchor(a);
+        }
+    }
 }
 
 /// A run's poses, each moved with its anchor keyframe in the map that keyframe is in now,

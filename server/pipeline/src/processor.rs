@@ -53,6 +53,9 @@ pub struct FrameTracking {
     /// The active map's snapshots when the frame changed it (a keyframe was made): its writer
     /// publishes the map as the keyframe left it there, after answering the tracker.
     pub map_snapshots: Option<Snapshots>,
+    /// The snapshots of the maps the robot's maps were merged into, by the robot's index of
+    /// each (see [`FrameResult::followed`]).
+    pub followed_snapshots: Vec<(usize, Snapshots)>,
 }
 
 /// Frame processing state of one worker thread (OpenCV objects are per thread).
@@ -303,11 +306,19 @@ fn track(
                 let map = m.read();
                 (map.live_keyframes(), map.live_points(), map.markers.len())
             });
-            // A keyframe changed the map: its writer publishes the map as it left it.
-            let changed = result.as_ref().is_some_and(|r| r.keyframe.is_some());
+            // A keyframe changed the map (its writer publishes the map as it left it), or the
+            // robot moved into the map its own was merged into.
+            let changed = result
+                .as_ref()
+                .is_some_and(|r| r.keyframe.is_some() || !r.followed.is_empty());
             let map_snapshots = active
                 .filter(|_| changed)
                 .and_then(|(_, m)| maps.snapshots(m.id()));
+            let followed_snapshots = result
+                .iter()
+                .flat_map(|r| &r.followed)
+                .filter_map(|f| Some((f.index, maps.snapshots(f.into)?)))
+                .collect();
             FrameTracking {
                 state,
                 result,
@@ -317,6 +328,7 @@ fn track(
                 markers,
                 error,
                 map_snapshots,
+                followed_snapshots,
             }
         };
     let extracted = match extracted {
@@ -332,6 +344,14 @@ fn track(
         Ok(result) => (Some(result), None),
         Err(e) => (None, Some(e.to_string())),
     };
+    // A keyframe may have mapped a marker another map holds: the maps may be one now. The
+    // robot of a map merged away follows it at its next frame.
+    if let (Some(_), Some((_, map))) = (
+        result.as_ref().and_then(|r| r.keyframe),
+        tracker.active_map(),
+    ) {
+        maps.merge_where_shared(map.id());
+    }
     let state = match tracker.state() {
         vsgraphs_slam::TrackingState::Initialising => TrackingState::Initialising,
         vsgraphs_slam::TrackingState::Tracking => TrackingState::Tracking,

@@ -7,8 +7,9 @@
 
 use crate::error::TrackError;
 use crate::local_mapping::{MapReply, MapRequest, MappingConfig};
-use crate::map::{Map, MapId};
+use crate::map::{KeyFrameId, Map, MapId, MapPointId};
 use std::sync::{Arc, RwLock, RwLockReadGuard, RwLockWriteGuard};
+use vsgraphs_optim::Se3;
 
 /// One map and the lock between its writer and its readers: a tracker reads it for the
 /// tracking of a frame, its writer changes it for the length of one request. A panic while it
@@ -58,4 +59,42 @@ pub trait MapWriter {
 
     /// Runs `request` on `map`'s writer and returns its reply once the work is done.
     fn request(&mut self, map: &SharedMap, request: MapRequest) -> Result<MapReply, TrackError>;
+
+    /// Where `map` went when it was merged into another map; `None` while it is a map of its
+    /// own. A tracker in a merged map follows it there and goes on.
+    fn moved(&self, map: &SharedMap) -> Option<MapMove> {
+        let _ = map;
+        None
+    }
+}
+
+/// Where a merged map's content went: its keyframe `k` is keyframe `k + keyframe_offset` of
+/// `into`, its point `p` is point `p + point_offset`, and a pose in it is `into_from_merged`
+/// times that pose in `into`.
+#[derive(Clone, Debug)]
+pub struct MapMove {
+    pub into: Arc<SharedMap>,
+    pub keyframe_offset: u32,
+    pub point_offset: u32,
+    pub into_from_merged: Se3,
+}
+
+impl MapMove {
+    pub fn keyframe(&self, k: KeyFrameId) -> KeyFrameId {
+        KeyFrameId(k.0 + self.keyframe_offset)
+    }
+
+    pub fn point(&self, p: MapPointId) -> MapPointId {
+        MapPointId(p.0 + self.point_offset)
+    }
+
+    /// One move after the other: where `self`'s map went once `then`'s map moved too.
+    pub fn then(&self, then: &MapMove) -> MapMove {
+        MapMove {
+            into: then.into.clone(),
+            keyframe_offset: self.keyframe_offset + then.keyframe_offset,
+            point_offset: self.point_offset + then.point_offset,
+            into_from_merged: then.into_from_merged.compose(&self.into_from_merged),
+        }
+    }
 }

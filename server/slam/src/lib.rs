@@ -29,13 +29,13 @@ pub mod triangulation;
 pub mod walls;
 pub mod worker;
 
-pub use atlas::{MapWriter, SharedMap};
+pub use atlas::{MapMove, MapWriter, SharedMap};
 pub use error::TrackError;
 pub use frame::{Descriptor, Frame, Keypoint, Rig};
 pub use local_mapping::{LocalMapper, MapReply, MapRequest, MappingConfig};
 pub use map::{Anchor, KeyFrame, KeyFrameId, Map, MapId, MapMarker, MapPoint, MapPointId};
 pub use sighting::MarkerSighting;
 pub use tracking::{
-    ExtractedFrame, FrameResult, StageTimes, Tracker, TrackerConfig, TrackingState,
+    ExtractedFrame, FollowedMerge, FrameResult, StageTimes, Tracker, TrackerConfig, TrackingState,
 };
 pub use vsgraphs_optim::{DepthResidual, Pinhole, Se3};

@@ -183,15 +183,22 @@ impl LocalMapper {
         self.finish_local_ba(map)?;
         self.land_whole_map(map, true);
         let newest = newest_live(map);
+        let source_newest = newest_live(source);
         let started = Instant::now();
         let absorbed = merge::absorb(map, source, &alignment);
         let absorb_time = started.elapsed();
         let started = Instant::now();
+        // A robot may be tracking at the newest keyframes of either part: both hold still, and
+        // the correction goes into the older parts.
+        let held =
+            |newest: KeyFrameId| std::iter::once(newest).chain(mapping::local_window(map, newest));
+        let source_newest = source_newest.map(|k| absorbed.keyframe(k));
         let whole_map = match (map.rig.clone(), newest) {
             (Some(rig), Some(newest)) => {
-                let hold: HashSet<KeyFrameId> = std::iter::once(newest)
-                    .chain(mapping::local_window(map, newest))
+                let hold: HashSet<KeyFrameId> = held(newest)
+                    .chain(source_newest.into_iter().flat_map(held))
                     .collect();
+
                 // The maps are one already: a failed solve leaves the parts where the
                 // alignment put them, and the next whole-map optimisation tries again.
                 match global::optimise_map(map, &rig, &self.walls, &hold, WHOLE_MAP_ITERATIONS) {

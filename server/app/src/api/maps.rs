@@ -9,10 +9,16 @@ use axum::http::StatusCode;
 use axum::Json;
 use vsgraphs_pipeline::{MapService, Published};
 use vsgraphs_proto::api::{
-    ApiError, GraphEdge, GraphLayer, GraphNode, MapDoorway, MapSpace, MapSummary, MapView, MapWall,
-    Route, SceneGraph, SpaceKind, SpaceRef,
+    ApiError, GraphEdge, GraphLayer, GraphNode, MapDoorway, MapMerge, MapSpace, MapSummary,
+    MapView, MapWall, Route, SceneGraph, SpaceKind, SpaceRef,
 };
 use vsgraphs_slam::MapId;
+
+/// Every merge of two maps so far, oldest first.
+#[utoipa::path(get, path = "/api/v1/merges", responses((status = 200, body = [MapMerge])))]
+pub(super) async fn merges(State(state): State<ApiState>) -> Json<Vec<MapMerge>> {
+    Json(state.maps.merges().iter().map(|m| m.api()).collect())
+}
 
 /// Every map of the server, with the robots that mapped in it.
 #[utoipa::path(get, path = "/api/v1/maps", responses((status = 200, body = [MapSummary])))]

@@ -19,8 +19,8 @@ use vsgraphs_pipeline::MapService;
 use vsgraphs_proto::api::{
     ApiError, DictionaryDoor, DictionaryInfo, DictionarySpace, DistanceSource, FrameCounters,
     FrameDetections, GraphEdge, GraphLayer, GraphNode, Health, MapDoorway, MapKeyframe, MapMarker,
-    MapSpace, MapSummary, MapView, MapWall, MarkerDetection, MarkerPose, MissingSpace, Pose,
-    Presence, Rejection, RobotStatus, Route, SceneGraph, SpaceKind, SpaceRef, Timing,
+    MapMerge, MapSpace, MapSummary, MapView, MapWall, MarkerDetection, MarkerPose, MissingSpace,
+    Pose, Presence, Rejection, RobotStatus, Route, SceneGraph, SpaceKind, SpaceRef, Timing,
     TrackingState, TrackingStatus, TrajectoryPose,
 };
 
@@ -85,6 +85,7 @@ impl IntoResponse for Failure {
         dictionary::put,
         dictionary::delete,
         maps::list,
+        maps::merges,
         maps::one,
         maps::model,
         maps::spaces,
@@ -116,6 +117,7 @@ impl IntoResponse for Failure {
         MapSpace,
         MapDoorway,
         MapSummary,
+        MapMerge,
         DictionaryInfo,
         DictionarySpace,
         DictionaryDoor,
@@ -160,6 +162,7 @@ pub fn router(registry: Arc<Registry>, maps: MapService) -> Router {
                 .delete(dictionary::delete),
         )
         .route("/api/v1/maps", get(maps::list))
+        .route("/api/v1/merges", get(maps::merges))
         .route("/api/v1/maps/{map_id}", get(maps::one))
         .route("/api/v1/maps/{map_id}/model", get(maps::model))
         .route("/api/v1/maps/{map_id}/spaces", get(maps::spaces))

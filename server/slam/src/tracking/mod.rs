@@ -29,11 +29,11 @@ mod local_map;
 mod matches;
 mod relocalisation;
 
-use crate::atlas::{MapWriter, SharedMap};
+use crate::atlas::{MapMove, MapWriter, SharedMap};
 pub use crate::error::TrackError;
 use crate::frame::{Frame, Rig};
 use crate::local_mapping::{KeyframeRequest, MapReply, MapRequest, MappingConfig, PointStatistics};
-use crate::map::{Anchor, KeyFrameId, Map};
+use crate::map::{Anchor, KeyFrameId, Map, MapId};
 use crate::sighting::MarkerSighting;
 use last_frame::LastFrame;
 use local_map::LocalMapSearch;
@@ -182,7 +182,38 @@ pub struct FrameResult {
     pub anchor: Option<Anchor>,
     /// Something worth a log line: a map started, tracking lost, relocalised.
     pub event: Option<String>,
+    /// The robot's maps that were merged into others before this frame, and that it followed
+    /// there: a caller that kept poses and anchors of those maps must move them too.
+    pub followed: Vec<FollowedMerge>,
     pub times: StageTimes,
+}
+
+/// A move of a robot's map into the map it was merged into (see [`MapMove`]).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct FollowedMerge {
+    /// The map's index among the robot's maps ([`FrameResult::map`]), which names the map it
+    /// went into from now on.
+    pub index: usize,
+    pub from: MapId,
+    pub into: MapId,
+    pub keyframe_offset: u32,
+    pub into_from_merged: Se3,
+}
+
+impl FollowedMerge {
+    /// A pose of the map that was left, in the map it went into.
+    pub fn pose(&self, world_from_camera: &Se3) -> Se3 {
+        self.into_from_merged.compose(world_from_camera)
+    }
+
+    /// An anchor of the map that was left, in the map it went into (the keyframe's pose and
+    /// the camera's move together, so the offset from the keyframe stays).
+    pub fn anchor(&self, anchor: &Anchor) -> Anchor {
+        Anchor {
+            keyframe: KeyFrameId(anchor.keyframe.0 + self.keyframe_offset),
+            keyframe_from_camera: anchor.keyframe_from_camera,
+        }
+    }
 }
 
 /// Tracks one robot's frames in the maps it started.
@@ -341,6 +372,13 @@ impl Tracker {
         } = extracted;
         let timestamp_ns = frame.timestamp_ns;
         let mut event = None;
+        let followed = self.follow_merges(writer);
+        if let Some(f) = followed.last() {
+            event = Some(format!(
+                "map {} was merged into map {}: tracking goes on there",
+                f.from.0, f.into.0
+            ));
+        }
         if self.rig.as_ref().is_some_and(|r| r != &rig) {
             // Another camera: poses in the old map mean nothing for it.
             self.start_new_map(writer);
@@ -378,6 +416,7 @@ impl Tracker {
             keyframe: None,
             anchor: None,
             event,
+            followed,
             times,
         };
         let tracking_started = Instant::now();
@@ -452,6 +491,73 @@ impl Tracker {
             result.map = self.active_index();
         }
         Ok(result)
+    }
+
+    /// Follows the robot's maps that were merged into others (and on, when those were merged
+    /// too): each entry of its maps becomes the map it went into. For the active map, the last
+    /// frame's pose, its points, the reference keyframe and the pending point statistics become
+    /// the same things in the map they are now in; the motion model is relative to the camera
+    /// and holds as it is.
+    fn follow_merges(&mut self, writer: &dyn MapWriter) -> Vec<FollowedMerge> {
+        let mut followed = Vec::new();
+        for index in 0..self.maps.len() {
+            let left = self.maps[index].clone();
+            let from = left.id();
+            let mut total: Option<MapMove> = None;
+            while let Some(step) = writer.moved(&self.maps[index]) {
+                self.maps[index] = step.into.clone();
+                total = Some(match total {
+                    Some(before) => before.then(&step),
+                    None => step,
+                });
+            }
+            let Some(moved) = total else {
+                continue;
+            };
+            if index + 1 == self.maps.len() {
+                self.move_state(&left, &moved);
+            }
+            followed.push(FollowedMerge {
+                index,
+                from,
+                into: moved.into.id(),
+                keyframe_offset: moved.keyframe_offset,
+                into_from_merged: moved.into_from_merged,
+            });
+        }
+        followed
+    }
+
+    /// What the tracker keeps of its active map `left`, moved as the map was. The last frame
+    /// stays where it was relative to its reference keyframe, which the merged map's
+    /// optimisation may have moved further.
+    fn move_state(&mut self, left: &SharedMap, moved: &MapMove) {
+        let into_from_left = |k: KeyFrameId| -> Option<Se3> {
+            let before = left.read().keyframes.get(k.0 as usize)?.world_from_camera;
+            let after = moved
+                .into
+                .read()
+                .keyframes
+                .get(moved.keyframe(k).0 as usize)?
+                .world_from_camera;
+            Some(after.compose(&before.inverse()))
+        };
+        let correction = self
+            .reference
+            .and_then(into_from_left)
+            .unwrap_or(moved.into_from_merged);
+        if let Some(last) = &mut self.last {
+            last.world_from_camera = correction.compose(&last.world_from_camera);
+            for point in last.points.iter_mut().flatten() {
+                *point = moved.point(*point);
+            }
+        }
+        self.reference = self.reference.map(|k| moved.keyframe(k));
+        let statistics = &mut self.statistics;
+        for p in statistics.visible.iter_mut().chain(&mut statistics.found) {
+            *p = moved.point(*p);
+        }
+        self.relocaliser.reset();
     }
 
     /// Index of the active map among the robot's maps (0 before the first).
