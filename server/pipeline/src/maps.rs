@@ -42,6 +42,8 @@ struct Inner {
     moves: Mutex<BTreeMap<MapId, MapMove>>,
     /// Every merge so far, oldest first.
     merge_log: Mutex<Vec<MergeReport>>,
+    /// The last snapshots of the maps merged into others.
+    retired: Mutex<BTreeMap<MapId, Snapshots>>,
     /// Merges run one at a time; held for the length of one.
     merging: Mutex<()>,
     /// Merge maps as soon as they share markers ([`MapService::merge_where_shared`]).
@@ -233,6 +235,13 @@ impl MapService {
         self.snapshots(id).map(|s| s.latest())
     }
 
+    /// The latest snapshot of a map, or the last one of a map merged into another (as it was
+    /// before the merge, in its own frame; [`MapService::resolve`] finds its keyframes since).
+    pub fn last_snapshot(&self, id: MapId) -> Option<Arc<MapView>> {
+        self.snapshot(id)
+            .or_else(|| lock(&self.inner.retired).get(&id).map(Snapshots::latest))
+    }
+
     /// Every map's snapshots, by id.
     pub fn all(&self) -> Vec<(MapId, Snapshots)> {
         lock(&self.inner.maps)
@@ -357,6 +366,7 @@ impl MapService {
                 into_from_merged: outcome.absorbed.target_from_source,
             },
         );
+        lock(&self.inner.retired).insert(source, Snapshots(from.snapshot.clone()));
         lock(&self.inner.maps).remove(&source);
         tracing::info!(
             target = target.0,
@@ -551,6 +561,14 @@ impl MapWriter for MapService {
     }
 
     fn request(&mut self, map: &SharedMap, request: MapRequest) -> Result<MapReply, TrackError> {
+        if let Some(moved) = self.moved(map) {
+            // A merge raced the robot's frame: its next frame follows the map.
+            return Err(TrackError::Writer(format!(
+                "map {} was merged into map {} during this frame",
+                map.id().0,
+                moved.into.id().0
+            )));
+        }
         let entry = self.entry(map.id())?;
         if !std::ptr::eq(entry.map.as_ref(), map) {
             // A map of another service that happens to share the id.

@@ -105,7 +105,8 @@ impl FrameProcessor {
         }
     }
 
-    /// The latest snapshot of each of the robot's maps, in the robot's order.
+    /// The latest snapshot of each of the robot's maps, in the robot's order (the last one of a
+    /// map merged since the robot's last frame).
     pub fn map_views(&self) -> Vec<Arc<MapView>> {
         let Some(tracker) = &self.tracker else {
             return Vec::new();
@@ -113,7 +114,7 @@ impl FrameProcessor {
         tracker
             .maps()
             .iter()
-            .filter_map(|m| self.maps.snapshot(m.id()))
+            .filter_map(|m| self.maps.last_snapshot(m.id()))
             .collect()
     }
 

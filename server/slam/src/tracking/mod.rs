@@ -265,6 +265,11 @@ impl Tracker {
         let Some(map) = self.maps.last().cloned() else {
             return Ok(());
         };
+        if writer.moved(&map).is_some() {
+            // Merged since the last frame: the merge landed the map's pending work.
+            self.statistics = PointStatistics::default();
+            return Ok(());
+        }
         let statistics = std::mem::take(&mut self.statistics);
         if let MapReply::Flushed { local_ba } =
             writer.request(&map, MapRequest::Flush(statistics))?
