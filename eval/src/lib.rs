@@ -7,6 +7,7 @@
 //! server depends on this crate.
 
 pub mod metrics;
+pub mod places;
 pub mod posegraph;
 pub mod scenario;
 pub mod score;

@@ -14,6 +14,7 @@ use vsgraphs_optim::{Method, Options};
 use vsgraphs_pipeline::PipelineConfig;
 use vsgraphs_proto::model::BuildingModel;
 use vsgraphs_sim::scenarios::Scenario;
+use vsgraphs_vision::vocabulary::{Training, Vocabulary};
 
 #[derive(Parser)]
 #[command(name = "vsgraphs-eval", version, about = "vsgraphs evaluation tools")]
@@ -169,9 +170,10 @@ enum Command {
         /// Renderer noise seed.
         #[arg(long, default_value_t = 1)]
         seed: u64,
-        /// A server configuration file (TOML), of which its [markers], [tracking] and
-        /// [semantics] sections are read (`[semantics] enabled = false` measures the trajectory
-        /// without the S-Graph); default: the built-in defaults.
+        /// A server configuration file (TOML), of which its [markers], [tracking], [semantics]
+        /// and [atlas] sections are read (`[semantics] enabled = false` measures the trajectory
+        /// without the S-Graph, `[atlas] close_loops = false` without loop closing); default:
+        /// the built-in defaults.
         #[arg(long)]
         config: Option<PathBuf>,
         /// Also write the estimated trajectory (TUM: estimate.txt refined, estimate_as_tracked.txt
@@ -190,6 +192,47 @@ enum Command {
         #[arg(long)]
         realtime: bool,
         /// Print JSON instead of the tables.
+        #[arg(long)]
+        json: bool,
+    },
+    /// Train the visual vocabulary of place recognition on frames the simulator renders (its
+    /// own textures, so the file may be shipped), and write it (the server's is
+    /// server/vision/vocabulary/orb-k10-l4.voc).
+    Vocabulary {
+        /// Where to write it.
+        #[arg(long, short)]
+        out: PathBuf,
+        /// Scenarios whose walks are rendered (built-in names or JSON files); default: all
+        /// built-in ones.
+        #[arg(long, value_delimiter = ',')]
+        scenarios: Vec<String>,
+        /// Renderer seeds (they choose the textures); keep them apart from the seeds places
+        /// are measured with.
+        #[arg(long, value_delimiter = ',', default_value = "1001,1002")]
+        seeds: Vec<u64>,
+        /// One frame in this many is used.
+        #[arg(long, default_value_t = 30)]
+        every: usize,
+        #[arg(long, default_value_t = 10)]
+        branching: usize,
+        #[arg(long, default_value_t = 4)]
+        depth: usize,
+    },
+    /// Place recognition on its own: keyframes of a simulated walk looked up in the place
+    /// index as they come; every answer scored against the walk's true views.
+    Places {
+        /// seq01 … seq06, two_robots, or a scenario JSON file.
+        scenario: String,
+        /// Renderer noise and texture seed.
+        #[arg(long, default_value_t = 1)]
+        seed: u64,
+        /// A vocabulary file; default: the one the server ships.
+        #[arg(long)]
+        vocabulary: Option<PathBuf>,
+        /// Matches a verified candidate's transform must explain.
+        #[arg(long, default_value_t = vsgraphs_eval::places::PlacesOptions::default().min_inliers)]
+        min_inliers: usize,
+        /// Print JSON instead of the table.
         #[arg(long)]
         json: bool,
     },
@@ -330,6 +373,91 @@ fn main() -> anyhow::Result<()> {
                 println!("{}", serde_json::to_string_pretty(&run)?);
             } else {
                 vsgraphs_eval::scenario::print_table(&run);
+            }
+        }
+        Command::Vocabulary {
+            out,
+            scenarios,
+            seeds,
+            every,
+            branching,
+            depth,
+        } => {
+            let scenarios = if scenarios.is_empty() {
+                vsgraphs_sim::scenarios::NAMES
+                    .iter()
+                    .map(|s| s.to_string())
+                    .collect()
+            } else {
+                scenarios
+            };
+            let images = vsgraphs_eval::places::training_images(
+                &scenarios,
+                &seeds,
+                every,
+                |done, total| {
+                    if done % 100 == 0 || done == total {
+                        eprintln!("{done}/{total} frames rendered and described");
+                    }
+                },
+            )?;
+            let descriptors: usize = images.iter().map(Vec::len).sum();
+            eprintln!(
+                "training on {descriptors} descriptors of {} frames",
+                images.len()
+            );
+            let started = std::time::Instant::now();
+            let training = Training {
+                branching,
+                depth,
+                ..Training::default()
+            };
+            let vocabulary = vsgraphs_eval::places::train(&images, &training)?;
+            let bytes = vocabulary.to_bytes();
+            std::fs::write(&out, &bytes).with_context(|| format!("writing {}", out.display()))?;
+            println!(
+                "{} words (branching {branching}, depth {depth}) from {descriptors} descriptors \
+                 of {} frames ({} scenarios × seeds {seeds:?}, every {every}th frame) in {:.1} s; \
+                 {} bytes written to {}",
+                vocabulary.words(),
+                images.len(),
+                scenarios.len(),
+                started.elapsed().as_secs_f64(),
+                bytes.len(),
+                out.display()
+            );
+        }
+        Command::Places {
+            scenario,
+            seed,
+            vocabulary,
+            min_inliers,
+            json,
+        } => {
+            let scenario = Scenario::load(&scenario)?;
+            let loaded;
+            let vocabulary = match vocabulary {
+                Some(path) => {
+                    loaded = Vocabulary::read(&path)?;
+                    &loaded
+                }
+                None => Vocabulary::builtin(),
+            };
+            let options = vsgraphs_eval::places::PlacesOptions {
+                seed,
+                min_inliers,
+                ..Default::default()
+            };
+            let runs =
+                vsgraphs_eval::places::run(&scenario, vocabulary, &options, |done, total| {
+                    if done % 100 == 0 || done == total {
+                        eprintln!("{done}/{total} keyframes");
+                    }
+                })?;
+            if json {
+                println!("{}", serde_json::to_string_pretty(&runs)?);
+            } else {
+                vsgraphs_eval::places::print_table(&runs);
             }
         }
         Command::Posegraph {

@@ -93,6 +93,8 @@ pub struct ScenarioRun {
     /// why it could not be.
     pub semantics: Option<SemanticReport>,
     pub semantics_error: Option<String>,
+    /// Loops closed in the last map, each against the walk's truth.
+    pub loops: LoopScores,
     #[serde(skip)]
     pub model: BuildingModel,
     #[serde(skip)]
@@ -101,6 +103,66 @@ pub struct ScenarioRun {
     pub estimate_as_tracked: Trajectory,
     #[serde(skip)]
     pub reference: Trajectory,
+}
+
+/// The loops closed in a map against the truth: each loop edge's relative pose against the
+/// true relative pose of its two keyframes.
+#[derive(Debug, Default, Serialize)]
+pub struct LoopScores {
+    pub count: usize,
+    /// Loops whose relative pose is more than [`WRONG_LOOP_M`] or [`WRONG_LOOP_DEG`] off: a
+    /// false loop (a wrong place is metres off; a right one within centimetres).
+    pub wrong: usize,
+    /// The largest errors, metres and degrees.
+    pub worst_m: f64,
+    pub worst_deg: f64,
+}
+
+pub const WRONG_LOOP_M: f64 = 0.2;
+pub const WRONG_LOOP_DEG: f64 = 5.0;
+
+/// Scores the loops of `view` against `reference` (keyframes found by their stamps).
+pub fn score_loops(view: &vsgraphs_proto::api::MapView, reference: &Trajectory) -> LoopScores {
+    let stamp_of = |id: u32| {
+        view.keyframes
+            .iter()
+            .find(|k| k.id == id)
+            .map(|k| k.timestamp_ns as f64 * 1e-9)
+    };
+    let truth_at = |stamp: f64| {
+        let i = reference.stamps.partition_point(|&s| s < stamp - 1e-6);
+        (i < reference.len() && (reference.stamps[i] - stamp).abs() < 1e-3)
+            .then(|| reference.poses[i])
+    };
+    let mut scores = LoopScores::default();
+    for edge in &view.loops {
+        let (Some(older), Some(newer)) = (
+            stamp_of(edge.older).and_then(truth_at),
+            stamp_of(edge.newer).and_then(truth_at),
+        ) else {
+            continue;
+        };
+        scores.count += 1;
+        let p = &edge.older_from_newer;
+        let estimate = nalgebra::Isometry3::from_parts(
+            nalgebra::Translation3::from(nalgebra::Vector3::from(p.translation_m)),
+            nalgebra::UnitQuaternion::from_quaternion(nalgebra::Quaternion::new(
+                p.rotation_xyzw[3],
+                p.rotation_xyzw[0],
+                p.rotation_xyzw[1],
+                p.rotation_xyzw[2],
+            )),
+        );
+        let error = (older.inverse() * newer).inverse() * estimate;
+        let (m, deg) = (
+            error.translation.vector.norm(),
+            error.rotation.angle().to_degrees(),
+        );
+        scores.worst_m = scores.worst_m.max(m);
+        scores.worst_deg = scores.worst_deg.max(deg);
+        scores.wrong += usize::from(m > WRONG_LOOP_M || deg > WRONG_LOOP_DEG);
+    }
+    scores
 }
 
 #[derive(Debug, Serialize)]
@@ -187,11 +249,12 @@ pub fn run(
     let ate_percent_of_path = ate
         .as_ref()
         .map(|r| 100.0 * r.stats.rmse / r.reference_path_length.max(1e-9));
-    let model = summary
-        .map_views
-        .iter()
-        .find(|v| Some(v.map) == last_map)
+    let last_view = summary.map_views.iter().find(|v| Some(v.map) == last_map);
+    let model = last_view
         .map(vsgraphs_pipeline::model::building_model)
+        .unwrap_or_default();
+    let loops = last_view
+        .map(|v| score_loops(v, &reference))
         .unwrap_or_default();
     let (semantics, semantics_error) = score_model(&truth, &model, &reference, &estimate);
     Ok(ScenarioRun {
@@ -209,6 +272,7 @@ pub fn run(
         ate_percent_of_path,
         semantics,
         semantics_error,
+        loops,
         model,
         estimate,
         estimate_as_tracked,
@@ -614,6 +678,11 @@ pub fn print_table(run: &ScenarioRun) {
         m.mapping_p99,
         m.tracking_cpu,
         m.tracking_cpu_p99
+    );
+    let l = &run.loops;
+    println!(
+        "loops closed: {} ({} wrong: more than {WRONG_LOOP_M} m or {WRONG_LOOP_DEG}° from the truth); largest error {:.3} m, {:.2}°",
+        l.count, l.wrong, l.worst_m, l.worst_deg
     );
     println!();
     match &run.ate {

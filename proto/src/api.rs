@@ -193,6 +193,18 @@ pub struct MapKeyframe {
     pub culled: bool,
 }
 
+/// A loop closed in a map: keyframe `newer` seen from the old part of the map at keyframe
+/// `older`, and the relative pose the old part's points gave it.
+#[derive(Debug, Clone, Copy, Serialize, Deserialize, PartialEq)]
+#[cfg_attr(feature = "openapi", derive(ToSchema))]
+pub struct MapLoop {
+    pub older: u32,
+    pub newer: u32,
+    pub older_from_newer: Pose,
+    /// Old map points that relative pose explains.
+    pub inliers: u32,
+}
+
 /// A marker landmark of a map.
 #[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
 #[cfg_attr(feature = "openapi", derive(ToSchema))]
@@ -302,6 +314,9 @@ pub struct MapView {
     pub keyframe_count: u64,
     pub point_count: u64,
     pub marker_count: u64,
+    /// Loops closed in it.
+    #[serde(default)]
+    pub loop_count: u64,
     /// Every keyframe (empty in the list).
     #[serde(default)]
     pub keyframes: Vec<MapKeyframe>,
@@ -312,6 +327,9 @@ pub struct MapView {
     /// Every marker landmark (empty in the list).
     #[serde(default)]
     pub markers: Vec<MapMarker>,
+    /// Every loop closed in it, oldest first (empty in the list).
+    #[serde(default)]
+    pub loops: Vec<MapLoop>,
     /// Walls from the markers, doorways from the door markers, rooms and corridors from the
     /// semantic dictionary, and the dictionary's spaces not found (empty in the list).
     #[serde(default)]

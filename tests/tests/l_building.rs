@@ -59,6 +59,8 @@ fn an_l_shaped_building_gets_its_rooms_corridors_and_doorways() {
         run.frames
     );
     assert_eq!(run.maps, 1);
+    eprintln!("loops: {:?}", run.loops);
+    assert_eq!(run.loops.wrong, 0, "{:?}", run.loops);
     let kind = |name: &str| kind(&report, name);
     for name in ["doorways", "rooms", "corridors"] {
         let k = kind(name);

@@ -182,6 +182,11 @@ fn simulated_seq06_is_tracked_all_the_way_with_its_markers_mapped() {
     );
     assert_eq!(run.untracked, 0);
     assert_eq!(run.maps, 1);
+    // The walk comes back to places it has seen: visual words close loops there (ten at this
+    // seed, BENCHMARKS.md), each where the walk came back, within centimetres.
+    eprintln!("seq06 loops: {:?}", run.loops);
+    assert!(run.loops.count >= 1, "{:?}", run.loops);
+    assert_eq!(run.loops.wrong, 0, "{:?}", run.loops);
     // Every marker of the building is on the walk's way and gets mapped, where the building
     // has it (the semantic scorer aligns the map to the building by them).
     let truth = vsgraphs_sim::Building::from_plan(&Scenario::builtin("seq06").unwrap().plan)

@@ -181,3 +181,31 @@ fn a_robot_that_never_comes_back_starts_a_new_map() {
     );
     assert_eq!(rig.tracker.maps().len(), 2);
 }
+
+#[test]
+fn a_robot_carried_back_to_where_it_began_relocalises_there_at_once() {
+    let (camera, frames, size) = frames(120);
+    let mut rig = Rig {
+        tracker: Tracker::new(TrackerConfig::default()).unwrap(),
+        maps: MapService::new(),
+        camera,
+        size,
+    };
+    let mut poses = Vec::new();
+    for (t, grey, depth) in &frames {
+        let r = rig.track(*t, grey, depth);
+        assert_eq!(r.state, TrackingState::Tracking, "t={t}: {r:?}");
+        poses.push(r.world_from_camera.unwrap());
+    }
+    let keyframes = rig.tracker.maps()[0].read().keyframes.len();
+    assert!(keyframes >= 12, "{keyframes} keyframes");
+    // Restarted where it began: the newest keyframes see elsewhere, and relocalisation tries
+    // only a few keyframes a frame, so the place must be found by its words.
+    rig.tracker.restart();
+    let (t, grey, depth) = &frames[3];
+    let back = rig.track(frames[119].0 + 1.0 + t, grey, depth);
+    assert_eq!(back.state, TrackingState::Tracking, "{back:?}");
+    assert_eq!(back.event.as_deref(), Some("relocalised"));
+    let error = poses[3].inverse().compose(&back.world_from_camera.unwrap());
+    assert!(error.translation.norm() < 0.05, "{error:?}");
+}

@@ -50,7 +50,8 @@ impl Server {
         }
         let maps = MapService::with_semantics(config.semantics.enabled, dictionary)
             .with_whole_map_optimisation(config.semantics.optimise_every_keyframes)
-            .with_live_merges(config.atlas.merge_maps);
+            .with_live_merges(config.atlas.merge_maps)
+            .with_loop_closing(config.atlas.close_loops);
         vsgraphs_pipeline::FrameProcessor::new(
             &config.markers,
             &config.tracking,

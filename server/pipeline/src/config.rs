@@ -33,11 +33,18 @@ pub struct AtlasConfig {
     /// after each keyframe that maps a marker another map holds); the robots of the map merged
     /// away go on in the other. Off: maps are merged only when asked.
     pub merge_maps: bool,
+    /// Close loops inside a map: a keyframe that shows a place of an older part, found by its
+    /// visual words and confirmed by geometry, ties the two in the whole-map optimisation
+    /// (which `[semantics] optimise_every_keyframes` must leave on).
+    pub close_loops: bool,
 }
 
 impl Default for AtlasConfig {
     fn default() -> Self {
-        Self { merge_maps: true }
+        Self {
+            merge_maps: true,
+            close_loops: true,
+        }
     }
 }
 

@@ -105,6 +105,8 @@ struct Semantics {
     dictionary: Option<Arc<Dictionary>>,
     /// Keyframes between whole-map optimisations of the S-Graph (0: none).
     optimise_every: usize,
+    /// Close loops inside each map (through the whole-map optimisation).
+    close_loops: bool,
 }
 
 impl Default for Semantics {
@@ -113,6 +115,7 @@ impl Default for Semantics {
             enabled: true,
             dictionary: None,
             optimise_every: crate::config::DEFAULT_OPTIMISE_EVERY_KEYFRAMES,
+            close_loops: true,
         }
     }
 }
@@ -221,6 +224,17 @@ impl MapService {
             .write()
             .unwrap_or_else(|p| p.into_inner())
             .optimise_every = every;
+        self
+    }
+
+    /// Closes loops inside each map ([`vsgraphs_slam::loops`]) when the whole-map
+    /// optimisation runs.
+    pub fn with_loop_closing(self, close_loops: bool) -> Self {
+        self.inner
+            .semantics
+            .write()
+            .unwrap_or_else(|p| p.into_inner())
+            .close_loops = close_loops;
         self
     }
 
@@ -664,6 +678,9 @@ impl Writer {
             // The robot's worker may have gone (the server stopping): nobody to tell.
             let _ = reply.send(answer);
             if stamp.is_some() && !flush {
+                self.guarded("loop closing", |w| {
+                    w.mapper.look_for_pending_loop(&mut w.map.write())
+                });
                 self.layer_behind += 1;
                 if self.layer_behind >= LAYER_EVERY_KEYFRAMES {
                     self.guarded("the map's semantic layer", Self::publish_semantics);
@@ -688,6 +705,8 @@ impl Writer {
             0
         };
         self.mapper.set_whole_map_every(every);
+        self.mapper
+            .set_close_loops(settings.close_loops && every > 0);
         let reply = self.mapper.handle(&mut self.map.write(), request)?;
         Ok((reply, stamp))
     }

@@ -4,7 +4,8 @@
 
 use nalgebra::Vector3;
 use vsgraphs_proto::api::{
-    self, MapDoorway, MapKeyframe, MapMarker, MapSpace, MapView, MapWall, MissingSpace, Pose,
+    self, MapDoorway, MapKeyframe, MapLoop, MapMarker, MapSpace, MapView, MapWall, MissingSpace,
+    Pose,
 };
 use vsgraphs_proto::model::{
     self, BuildingModel, ModelDoorway, ModelMarker, ModelPlane, ModelSpace, ModelWall,
@@ -50,6 +51,7 @@ pub fn map_view(
         keyframe_count: map.live_keyframes() as u64,
         point_count,
         marker_count: map.markers.len() as u64,
+        loop_count: map.loop_edges.len() as u64,
         keyframes: map
             .keyframes
             .iter()
@@ -70,6 +72,16 @@ pub fn map_view(
                 world_from_marker: api_pose(&m.world_from_marker),
                 observations: m.observations.len() as u32,
                 keyframes: m.observations.iter().map(|(k, _)| k.0).collect(),
+            })
+            .collect(),
+        loops: map
+            .loop_edges
+            .iter()
+            .map(|edge| MapLoop {
+                older: edge.older.0,
+                newer: edge.newer.0,
+                older_from_newer: api_pose(&edge.older_from_newer),
+                inliers: edge.inliers as u32,
             })
             .collect(),
         walls: Vec::new(),
@@ -273,6 +285,7 @@ pub fn trimmed(view: &MapView, max_points: usize, lists: bool) -> MapView {
         keyframe_count: view.keyframe_count,
         point_count: view.point_count,
         marker_count: view.marker_count,
+        loop_count: view.loop_count,
         keyframes: kept(&view.keyframes, lists),
         points: if lists {
             decimate(&view.points, max_points)
@@ -280,6 +293,7 @@ pub fn trimmed(view: &MapView, max_points: usize, lists: bool) -> MapView {
             Vec::new()
         },
         markers: kept(&view.markers, lists),
+        loops: kept(&view.loops, lists),
         walls: kept(&view.walls, lists),
         doorways: kept(&view.doorways, lists),
         spaces: kept(&view.spaces, lists),

@@ -169,7 +169,8 @@ pub fn run_frames(
         Some(shared) => shared.clone(),
         None => MapService::with_semantics(config.semantics.enabled, source.dictionary.cloned())
             .with_whole_map_optimisation(config.semantics.optimise_every_keyframes)
-            .with_live_merges(config.atlas.merge_maps),
+            .with_live_merges(config.atlas.merge_maps)
+            .with_loop_closing(config.atlas.close_loops),
     };
     let mut processor = FrameProcessor::new(
         &config.markers,

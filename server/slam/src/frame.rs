@@ -2,23 +2,13 @@
 //! grid so that the keypoints near a predicted pixel are found without scanning them all.
 
 use crate::sighting::MarkerSighting;
-use nalgebra::Vector3;
+use nalgebra::{Vector2, Vector3};
+use vsgraphs_optim::pose_only::{Measurement, PoseObservation};
 use vsgraphs_optim::{DepthResidual, Pinhole, VirtualStereo};
 use vsgraphs_vision::orb::Extraction;
 
-/// A 256-bit rotated-BRIEF descriptor.
-pub use vsgraphs_vision::brief::Descriptor;
-
-/// Number of differing bits.
-pub fn hamming(a: &Descriptor, b: &Descriptor) -> u32 {
-    let mut distance = 0;
-    for (x, y) in a.chunks_exact(8).zip(b.chunks_exact(8)) {
-        let x = u64::from_le_bytes(x.try_into().expect("8 bytes"));
-        let y = u64::from_le_bytes(y.try_into().expect("8 bytes"));
-        distance += (x ^ y).count_ones();
-    }
-    distance
-}
+/// A 256-bit rotated-BRIEF descriptor, and the number of bits two differ in.
+pub use vsgraphs_vision::brief::{hamming, Descriptor};
 
 /// The camera as tracking uses it: rectified intrinsics, the virtual stereo baseline that turns
 /// depth into a right-image coordinate, and the feature pyramid's scales.
@@ -83,6 +73,31 @@ pub struct Keypoint {
     pub depth: Option<f64>,
     /// `x − bf/depth`.
     pub right_x: Option<f64>,
+}
+
+impl Keypoint {
+    /// The keypoint in the camera frame, from its depth.
+    pub fn back_project(&self, camera: &Pinhole) -> Option<Vector3<f64>> {
+        let z = self.depth?;
+        Some(Vector3::new(
+            (self.x - camera.cx) * z / camera.fx,
+            (self.y - camera.cy) * z / camera.fy,
+            z,
+        ))
+    }
+
+    /// What it measured of `point` (in the frame pose-only optimisation solves for): pixel,
+    /// and the right-image coordinate when it has depth, weighted by its pyramid level.
+    pub fn observation(&self, rig: &Rig, point: Vector3<f64>) -> PoseObservation {
+        PoseObservation {
+            point_in_world: point,
+            measured: match self.right_x {
+                Some(right) => Measurement::Stereo(Vector3::new(self.x, self.y, right)),
+                None => Measurement::Mono(Vector2::new(self.x, self.y)),
+            },
+            information: rig.information(usize::from(self.level)),
+        }
+    }
 }
 
 /// Grid cells over the image, ORB-SLAM's 64 × 48.
@@ -229,13 +244,7 @@ impl Frame {
 
     /// Keypoint `i` in the camera frame, from its depth.
     pub fn back_project(&self, i: usize, camera: &Pinhole) -> Option<Vector3<f64>> {
-        let k = &self.keypoints[i];
-        let z = k.depth?;
-        Some(Vector3::new(
-            (k.x - camera.cx) * z / camera.fx,
-            (k.y - camera.cy) * z / camera.fy,
-            z,
-        ))
+        self.keypoints[i].back_project(camera)
     }
 
     /// Keypoints with a depth reading.

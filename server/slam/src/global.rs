@@ -61,13 +61,24 @@ pub struct GlobalReport {
     pub applied: bool,
 }
 
-/// One relative-pose edge: keyframes `i` and `j`, their relative pose in the map as it was,
-/// and the points they share.
+/// One relative-pose edge: keyframes `i` and `j`, their relative pose in the map as it was
+/// (or as a loop measured it), and the points they share (none for a loop).
 struct Edge {
     i: KeyFrameId,
     j: KeyFrameId,
     i_from_j: Se3,
     shared: usize,
+    closes_loop: bool,
+}
+
+impl Edge {
+    fn sigmas(&self, bf: f64) -> [f64; 6] {
+        if self.closes_loop {
+            loop_sigmas(bf)
+        } else {
+            edge_sigmas(bf, self.shared)
+        }
+    }
 }
 
 /// A whole-map optimisation built from the map and ready to solve anywhere (it is `Send` and
@@ -135,7 +146,7 @@ impl GlobalJob {
             keyframes: live.len(),
             ..GlobalReport::default()
         };
-        if live.len() < 2 || map.markers.is_empty() {
+        if live.len() < 2 || (map.markers.is_empty() && map.loop_edges.is_empty()) {
             return None;
         }
         let mut values = Values::new();
@@ -203,7 +214,7 @@ impl GlobalJob {
                         edge.i_from_j,
                         PoseError::LogMap,
                     ),
-                    edge_information(self.bf, edge.shared),
+                    Information::from_sigmas(&edge.sigmas(self.bf)).expect("positive sigmas"),
                     None,
                 )
                 .expect("keys made with the values");
@@ -288,7 +299,7 @@ impl GlobalJob {
                 .inverse()
                 .compose(solution.get(self.pose_key(edge.j)));
             let r = edge.i_from_j.local(&after);
-            let sigmas = edge_sigmas(self.bf, edge.shared);
+            let sigmas = edge.sigmas(self.bf);
             let chi2: f64 = (0..6).map(|c| (r[c] / sigmas[c]).powi(2)).sum();
             chi2 > CHI2_6D_REJECT
         });
@@ -414,6 +425,7 @@ fn essential_edges(map: &Map, live: &[KeyFrameId]) -> Vec<Edge> {
                 j: pair.1,
                 i_from_j: a.inverse().compose(&b),
                 shared,
+                closes_loop: false,
             });
         }
     };
@@ -441,7 +453,44 @@ fn essential_edges(map: &Map, live: &[KeyFrameId]) -> Vec<Edge> {
             }
         }
     }
+    // Loops hold their keyframes at the relative pose the old part's points gave, not the one
+    // the map has (that is the drift), weighted as one depth reading ([`loop_sigmas`]). A
+    // culled end is carried to the keyframe that replaced it.
+    for edge in &map.loop_edges {
+        let (older, live_from_older) = live_ancestor(map, edge.older);
+        let (newer, live_from_newer) = live_ancestor(map, edge.newer);
+        if older == newer {
+            continue;
+        }
+        let i_from_j = live_from_older
+            .compose(&edge.older_from_newer)
+            .compose(&live_from_newer.inverse());
+        let (i, j, i_from_j) = if older < newer {
+            (older, newer, i_from_j)
+        } else {
+            (newer, older, i_from_j.inverse())
+        };
+        edges.push(Edge {
+            i,
+            j,
+            i_from_j,
+            shared: 0,
+            closes_loop: true,
+        });
+    }
     edges
+}
+
+/// The live keyframe a keyframe was culled into (itself if live), and the keyframe's pose
+/// relative to it.
+fn live_ancestor(map: &Map, k: KeyFrameId) -> (KeyFrameId, Se3) {
+    let mut at = k;
+    let mut live_from_k = Se3::identity();
+    while let Some((parent, parent_from_this)) = map.keyframe(at).parent {
+        live_from_k = parent_from_this.compose(&live_from_k);
+        at = parent;
+    }
+    (at, live_from_k)
 }
 
 /// Standard deviations of a relative pose that `shared` points fix, `[ρ; φ]`: a point's depth
@@ -455,8 +504,17 @@ fn edge_sigmas(bf: f64, shared: usize) -> [f64; 6] {
     [t, t, t, r, r, r]
 }
 
-fn edge_information(bf: f64, shared: usize) -> Information {
-    Information::from_sigmas(&edge_sigmas(bf, shared)).expect("positive sigmas")
+/// Standard deviations of a loop edge: one point's depth error at the typical range, and the
+/// angle it subtends there. The points that confirm a loop are many, but they are the old
+/// part's points, placed by the old keyframes' depth readings and by whatever optimisation
+/// moved the old part since; their errors do not average out over their number as those of
+/// two neighbouring keyframes' shared points do. So a loop corrects drift larger than a depth
+/// reading's error and leaves alone a map already closer than that (markers seen again may
+/// have closed it).
+fn loop_sigmas(bf: f64) -> [f64; 6] {
+    let t = TYPICAL_RANGE_M * TYPICAL_RANGE_M / bf;
+    let r = t / TYPICAL_RANGE_M;
+    [t, t, t, r, r, r]
 }
 
 /// Every sighting of every marker, from the live keyframes, as a corner factor (with the
@@ -500,7 +558,7 @@ fn chi2_of(factor: &MarkerCornersFactor, values: &Values) -> f64 {
 mod tests {
     use super::*;
     use crate::frame::tests::rig;
-    use crate::map::{MapMarker, MapPointId};
+    use crate::map::{LoopEdge, MapMarker, MapPointId};
     use crate::sighting::MarkerSighting;
     use crate::triangulation::tests::{frame_of, Depth};
     use nalgebra::{UnitQuaternion, Vector3};
@@ -715,5 +773,50 @@ mod tests {
             .map(|e| (e.i.0, e.j.0))
             .collect();
         assert!(!edges.contains(&(18, 20)), "{edges:?}");
+    }
+
+    #[test]
+    fn a_loop_edge_closes_the_loop_without_markers() {
+        let rig = rig();
+        let hold: HashSet<KeyFrameId> = [N - 2, N - 1].map(|k| KeyFrameId(k as u32)).into();
+        let (mut map, _) = drifted_map();
+        map.markers.clear();
+        // Nothing to hold the ends together: no optimisation at all.
+        let report = optimise_map(&mut map.clone(), &rig, &[], &hold, 20).unwrap();
+        assert!(!report.applied, "{report:?}");
+        let (moved_before, turned_before) = loop_error(&map);
+        // The last keyframe seen from the first's part of the map, at the true relative pose;
+        // the first's end culled into keyframe 0 in a second map, to be carried to it.
+        let edge = |older: usize| LoopEdge {
+            older: KeyFrameId(older as u32),
+            newer: KeyFrameId(N as u32 - 1),
+            older_from_newer: true_pose(older).inverse().compose(&true_pose(N - 1)),
+            inliers: 100,
+        };
+        let mut culled = map.clone();
+        map.loop_edges.push(edge(0));
+        let report = optimise_map(&mut map, &rig, &[], &hold, 20).unwrap();
+        assert!(report.applied, "{report:?}");
+        // The loop counts as one depth reading against a chain of keyframes that each hold
+        // the next as a dozen shared points do: most of the drift goes, not all.
+        let (moved_after, turned_after) = loop_error(&map);
+        assert!(
+            moved_after < 0.3 * moved_before && turned_after < 0.3 * turned_before,
+            "{moved_before} {turned_before} -> {moved_after} {turned_after}"
+        );
+        let parent_from_one = culled
+            .keyframe(KeyFrameId(0))
+            .world_from_camera
+            .inverse()
+            .compose(&culled.keyframe(KeyFrameId(1)).world_from_camera);
+        culled.keyframes[1].parent = Some((KeyFrameId(0), parent_from_one));
+        culled.loop_edges.push(edge(1));
+        let report = optimise_map(&mut culled, &rig, &[], &hold, 20).unwrap();
+        assert!(report.applied, "{report:?}");
+        let (moved_culled, turned_culled) = loop_error(&culled);
+        assert!(
+            moved_culled < 0.3 * moved_before && turned_culled < 0.3 * turned_before,
+            "{moved_before} {turned_before} -> {moved_culled} {turned_culled}"
+        );
     }
 }

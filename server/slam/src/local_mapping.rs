@@ -11,6 +11,7 @@
 use crate::error::TrackError;
 use crate::frame::{Frame, Rig};
 use crate::global::{self, GlobalJob, SolvedGlobal};
+use crate::loops;
 use crate::map::{KeyFrameId, Map, MapPointId};
 use crate::mapping::{self, LocalBaJob, SolvedLocalBa};
 use crate::markers;
@@ -29,6 +30,10 @@ const WHOLE_MAP_ITERATIONS: usize = 20;
 /// before the next. Its solve takes up to a few hundred milliseconds on a building-sized map;
 /// a robot walking at a keyframe every few frames gives it about that.
 const WHOLE_MAP_LAG: usize = 1;
+
+/// Keyframes after a loop closes before the next loop is looked for (about two seconds of a
+/// walk at a keyframe every few frames: the revisit that closed it).
+const LOOP_GAP: usize = 10;
 
 /// The whole-map optimisation's priority, as a nice value: its result is awaited a keyframe
 /// later, while a tracker waits on every frame, so on cores both want it yields (a thread at
@@ -138,6 +143,11 @@ pub struct LocalMapper {
     whole_map_worker: Option<Worker<GlobalJob, SolvedGlobal>>,
     /// The rig a whole-map optimisation being solved in the background was built with.
     pending_whole_map: Option<Rig>,
+    /// Look for loops after each keyframe; keyframes inserted since the last loop closed; the
+    /// keyframe to look from, once its request is answered.
+    close_loops: bool,
+    since_loop: usize,
+    loop_check: Option<(KeyFrameId, Rig)>,
 }
 
 /// What joining another map to this one did ([`LocalMapper::absorb`]).
@@ -167,6 +177,9 @@ impl LocalMapper {
             since_whole_map: 0,
             whole_map_worker: None,
             pending_whole_map: None,
+            close_loops: false,
+            since_loop: LOOP_GAP,
+            loop_check: None,
         }
     }
 
@@ -235,6 +248,53 @@ impl LocalMapper {
         self.whole_map_every = every;
     }
 
+    /// Looks for loops after each keyframe ([`loops`]); a loop closes through the whole-map
+    /// optimisation, so it needs [`Self::set_whole_map_every`] above 0.
+    pub fn set_close_loops(&mut self, close: bool) {
+        self.close_loops = close;
+    }
+
+    /// Looks for a loop at keyframe `k`; one found becomes a loop edge of the map, and the
+    /// whole-map optimisation starts with the next keyframe instead of at its turn. After a
+    /// loop, [`LOOP_GAP`] keyframes pass before the next is looked for: the keyframes that
+    /// follow revisit the same place, and one edge per visit is enough to pull it together.
+    fn look_for_loop(&mut self, map: &mut Map, rig: &Rig, k: KeyFrameId) {
+        self.since_loop += 1;
+        if !self.close_loops || self.whole_map_every == 0 || self.since_loop < LOOP_GAP {
+            return;
+        }
+        let started = Instant::now();
+        let found = loops::detect(map, rig, k);
+        tracing::trace!(
+            keyframe = k.0,
+            found = found.is_some(),
+            ms = started.elapsed().as_secs_f64() * 1e3,
+            "looked for a loop"
+        );
+        let Some(edge) = found else {
+            return;
+        };
+        let before = map
+            .keyframe(edge.older)
+            .world_from_camera
+            .inverse()
+            .compose(&map.keyframe(k).world_from_camera);
+        let drift = before.inverse().compose(&edge.older_from_newer);
+        tracing::debug!(
+            keyframe = k.0,
+            older = edge.older.0,
+            inliers = edge.inliers,
+            drift_m = drift.translation.norm(),
+            drift_deg = drift.rotation.angle().to_degrees(),
+            "loop closed"
+        );
+        map.loop_edges.push(edge);
+        self.since_loop = 0;
+        self.since_whole_map = self
+            .since_whole_map
+            .max(self.whole_map_every.saturating_sub(1));
+    }
+
     /// Starts the whole-map optimisation when its turn has come, before a keyframe is inserted
     /// (the last local BA has landed). The newest keyframe and its local window hold still: the
     /// frame being inserted was tracked against them, and the keyframes that follow it grow
@@ -300,8 +360,18 @@ impl LocalMapper {
         &self.config
     }
 
+    /// Looks for a loop at the keyframe the last request inserted, if not done yet. A map's
+    /// writer calls it after answering, so the tracker does not wait for it; otherwise the
+    /// next request does it first. Either way the map never depends on timing.
+    pub fn look_for_pending_loop(&mut self, map: &mut Map) {
+        if let Some((k, rig)) = self.loop_check.take() {
+            self.look_for_loop(map, &rig, k);
+        }
+    }
+
     /// Does what `request` asks of `map`.
     pub fn handle(&mut self, map: &mut Map, request: MapRequest) -> Result<MapReply, TrackError> {
+        self.look_for_pending_loop(map);
         match request {
             MapRequest::Start { frame, rig } => Ok(self.start(map, frame, &rig)),
             MapRequest::Insert(request) => self.insert(map, request),
@@ -381,6 +451,7 @@ impl LocalMapper {
         mapping::fuse_with_neighbours(map, &rig, k);
         mapping::cull_recent_points(map, &mut self.recent_points, k);
         map.refresh_neighbours(k);
+        self.loop_check = Some((k, rig.clone()));
         if self.config.local_ba_iterations > 0 {
             let job = mapping::prepare_local_ba(
                 map,

@@ -3,20 +3,13 @@
 //! never dangle.
 
 use crate::frame::{hamming, Descriptor, Frame, Rig};
+use crate::places::{self, PlaceIndex};
 use nalgebra::Vector3;
 use std::collections::BTreeMap;
 use vsgraphs_optim::factors::marker::marker_corners;
 use vsgraphs_optim::Se3;
 
-/// A map's id, unique among the maps of one writer (the server's: unique in the server).
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, PartialOrd, Ord)]
-pub struct MapId(pub u32);
-
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, PartialOrd, Ord)]
-pub struct KeyFrameId(pub u32);
-
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, PartialOrd, Ord)]
-pub struct MapPointId(pub u32);
+pub use crate::ids::{KeyFrameId, MapId, MapPointId};
 
 /// A frame kept in the map, with the map point (if any) behind each keypoint.
 #[derive(Clone, Debug)]
@@ -48,6 +41,18 @@ impl KeyFrame {
 pub struct Anchor {
     pub keyframe: KeyFrameId,
     pub keyframe_from_camera: Se3,
+}
+
+/// A loop edge: keyframe `newer` seen from the old part of the map, at keyframe `older`
+/// ([`crate::loops`]); the whole-map optimisation holds it beside the essential graph.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct LoopEdge {
+    pub older: KeyFrameId,
+    pub newer: KeyFrameId,
+    /// `newer`'s pose relative to `older` as the old part's points put it.
+    pub older_from_newer: Se3,
+    /// Old points that pose explains.
+    pub inliers: usize,
 }
 
 /// A 3-D point seen by keyframes.
@@ -86,6 +91,10 @@ pub struct Map {
     pub markers: BTreeMap<i32, MapMarker>,
     /// The camera the map was started with (its first keyframe's).
     pub rig: Option<Rig>,
+    /// Its keyframes by their visual words, for relocalisation and loop detection.
+    pub places: PlaceIndex,
+    /// Loops closed in it, oldest first.
+    pub loop_edges: Vec<LoopEdge>,
     /// Keyframes that begin a trajectory of their own in this map (the first keyframe of each
     /// map merged into it): the keyframe before one in the arena is not its predecessor.
     pub trajectory_starts: std::collections::BTreeSet<KeyFrameId>,
@@ -172,6 +181,7 @@ impl Map {
             .inverse()
             .compose(&self.keyframe(id).world_from_camera);
         self.keyframe_mut(id).parent = Some((parent, parent_from_this));
+        self.places.remove(id);
         if let Some(n) = self.neighbours.get_mut(id.0 as usize) {
             n.clear();
         }
@@ -186,6 +196,7 @@ impl Map {
     pub fn add_keyframe(&mut self, frame: Frame, world_from_camera: Se3) -> KeyFrameId {
         let id = KeyFrameId(self.keyframes.len() as u32);
         let n = frame.len();
+        self.places.insert(id, places::bag_of(&frame));
         self.keyframes.push(KeyFrame {
             id,
             frame,

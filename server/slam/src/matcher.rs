@@ -4,6 +4,7 @@
 //! on repeated texture.
 
 use crate::frame::{hamming, Descriptor, Frame, Rig};
+use crate::map::MapPoint;
 use nalgebra::Vector3;
 use vsgraphs_optim::Se3;
 
@@ -50,6 +51,79 @@ pub fn project(
     }
     let uv = rig.camera.project(&p_c);
     rig.in_image(uv.x, uv.y).then_some((p_c, uv.x, uv.y))
+}
+
+/// Where a map point may be looked for from a camera (ORB-SLAM's local-map search): within
+/// these fractions of the distances its descriptor was seen from, within 60° of its mean
+/// viewing direction, in a window wider for points seen obliquely.
+#[derive(Clone, Debug, PartialEq)]
+pub struct ProjectionLimits {
+    pub min_distance_ratio: f64,
+    pub max_distance_ratio: f64,
+    /// Smallest cosine between the viewing ray and the point's mean viewing direction.
+    pub min_view_cos: f64,
+    /// Window factor for points seen straight on (cosine above `straight_view_cos`), else
+    /// `oblique_radius_factor`.
+    pub straight_view_cos: f64,
+    pub straight_radius_factor: f64,
+    pub oblique_radius_factor: f64,
+}
+
+impl Default for ProjectionLimits {
+    /// ORB-SLAM's values.
+    fn default() -> Self {
+        Self {
+            min_distance_ratio: 0.8,
+            max_distance_ratio: 1.2,
+            min_view_cos: 0.5,
+            straight_view_cos: 0.998,
+            straight_radius_factor: 2.5,
+            oblique_radius_factor: 4.0,
+        }
+    }
+}
+
+impl ProjectionLimits {
+    /// `point` as a projection search looks for it from a camera at `centre`, with a window
+    /// of `window` pixels (level 0) before the view factor; `None` when out of view or out of
+    /// the distances and angles its descriptor holds for.
+    pub fn project(
+        &self,
+        rig: &Rig,
+        camera_from_world: &Se3,
+        centre: &Vector3<f64>,
+        point: &MapPoint,
+        window: f64,
+    ) -> Option<Projected> {
+        let (p_c, u, v) = project(rig, camera_from_world, &point.position)?;
+        let offset = point.position - centre;
+        let distance = offset.norm();
+        if distance < self.min_distance_ratio * point.min_distance
+            || distance > self.max_distance_ratio * point.max_distance
+        {
+            return None;
+        }
+        let view_cos = -offset.dot(&point.normal) / distance;
+        if view_cos < self.min_view_cos {
+            return None;
+        }
+        let level = rig.predict_level(point.max_distance, distance);
+        let factor = if view_cos > self.straight_view_cos {
+            self.straight_radius_factor
+        } else {
+            self.oblique_radius_factor
+        };
+        Some(Projected {
+            u,
+            v,
+            right_u: u - rig.bf / p_c.z,
+            min_level: level.saturating_sub(1),
+            max_level: level,
+            radius: window * factor * rig.scale(level),
+            descriptor: point.descriptor,
+            angle: None,
+        })
+    }
 }
 
 /// Finds each projected point's keypoint. `taken[i]` marks keypoints already matched (left

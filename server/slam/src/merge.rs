@@ -12,7 +12,7 @@
 //! together where they meet.
 
 use crate::frame::Rig;
-use crate::map::{KeyFrameId, Map, MapMarker, MapPointId};
+use crate::map::{KeyFrameId, LoopEdge, Map, MapMarker, MapPointId};
 use crate::matcher::{search_by_projection, Projected, SearchOptions, TH_HIGH};
 use crate::rigid::{ransac_rigid, rigid_fit, Pair};
 use nalgebra::Vector3;
@@ -505,6 +505,7 @@ pub fn absorb(target: &mut Map, source: &Map, alignment: &Alignment) -> Absorbed
     let rotation = target_from_source.rotation;
     let mut absorbed = absorbed;
     for k in &source.keyframes {
+        let source_id = k.id;
         let mut k = k.clone();
         k.id = absorbed.keyframe(k.id);
         k.world_from_camera = target_from_source.compose(&k.world_from_camera);
@@ -513,6 +514,9 @@ pub fn absorb(target: &mut Map, source: &Map, alignment: &Alignment) -> Absorbed
         }
         if let Some((parent, _)) = &mut k.parent {
             *parent = absorbed.keyframe(*parent);
+        }
+        if let Some(bag) = source.places.bag(source_id) {
+            target.places.insert(k.id, bag.clone());
         }
         target.keyframes.push(k);
     }
@@ -527,6 +531,13 @@ pub fn absorb(target: &mut Map, source: &Map, alignment: &Alignment) -> Absorbed
         target.points.push(p);
     }
     target.culled_points += source.culled_points;
+    target
+        .loop_edges
+        .extend(source.loop_edges.iter().map(|edge| LoopEdge {
+            older: absorbed.keyframe(edge.older),
+            newer: absorbed.keyframe(edge.newer),
+            ..*edge
+        }));
     // Covisibility stays within each part until keyframes see points of both.
     target
         .neighbours

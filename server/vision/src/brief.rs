@@ -15,6 +15,17 @@ use opencv::prelude::*;
 /// A 256-bit descriptor; bit `i` (byte `i / 8`, bit `i % 8`) is pair `i`.
 pub type Descriptor = [u8; 32];
 
+/// Number of differing bits.
+pub fn hamming(a: &Descriptor, b: &Descriptor) -> u32 {
+    let mut distance = 0;
+    for (x, y) in a.chunks_exact(8).zip(b.chunks_exact(8)) {
+        let x = u64::from_le_bytes(x.try_into().expect("8 bytes"));
+        let y = u64::from_le_bytes(y.try_into().expect("8 bytes"));
+        distance += (x ^ y).count_ones();
+    }
+    distance
+}
+
 /// How far a turned pair reaches from its keypoint, pixels: the pairs lie within 13 px on
 /// each axis, so a turn takes them at most 13·√2 ≈ 18.4 px away, rounded to 18.
 pub const REACH: i32 = 18;

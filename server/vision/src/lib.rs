@@ -14,6 +14,7 @@ pub mod image;
 pub mod orb;
 pub mod pose;
 pub mod synth;
+pub mod vocabulary;
 
 pub use image::{GreyImage, ImageError};
 

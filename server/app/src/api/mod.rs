@@ -18,10 +18,10 @@ use utoipa::OpenApi;
 use vsgraphs_pipeline::MapService;
 use vsgraphs_proto::api::{
     ApiError, DictionaryDoor, DictionaryInfo, DictionarySpace, DistanceSource, FrameCounters,
-    FrameDetections, GraphEdge, GraphLayer, GraphNode, Health, MapDoorway, MapKeyframe, MapMarker,
-    MapMerge, MapSpace, MapSummary, MapView, MapWall, MarkerDetection, MarkerPose, MissingSpace,
-    Pose, Presence, Rejection, RobotStatus, Route, SceneGraph, SpaceKind, SpaceRef, Timing,
-    TrackingState, TrackingStatus, TrajectoryPose,
+    FrameDetections, GraphEdge, GraphLayer, GraphNode, Health, MapDoorway, MapKeyframe, MapLoop,
+    MapMarker, MapMerge, MapSpace, MapSummary, MapView, MapWall, MarkerDetection, MarkerPose,
+    MissingSpace, Pose, Presence, Rejection, RobotStatus, Route, SceneGraph, SpaceKind, SpaceRef,
+    Timing, TrackingState, TrackingStatus, TrajectoryPose,
 };
 
 /// What the handlers read: the robots and the maps.
@@ -112,6 +112,7 @@ impl IntoResponse for Failure {
         TrajectoryPose,
         MapView,
         MapKeyframe,
+        MapLoop,
         MapMarker,
         MapWall,
         MapSpace,

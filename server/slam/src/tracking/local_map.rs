@@ -6,7 +6,7 @@ use super::matches::{optimise, Matched, Source, Tracked};
 use crate::frame::{Frame, Rig};
 use crate::local_mapping::PointStatistics;
 use crate::map::{KeyFrameId, Map, MapPointId};
-use crate::matcher::{self, Projected, SearchOptions, TH_HIGH};
+use crate::matcher::{self, ProjectionLimits, SearchOptions, TH_HIGH};
 use std::collections::{HashMap, HashSet};
 
 /// The local-map search's parameters.
@@ -20,16 +20,8 @@ pub(super) struct LocalMapSearch {
     /// [`Self::radius_factor`]; wider just after relocalisation, whose pose is rougher.
     pub window: f64,
     pub window_after_relocalisation: f64,
-    /// A point is looked for between these fractions of the distances it was seen from.
-    pub min_distance_ratio: f64,
-    pub max_distance_ratio: f64,
-    /// Smallest cosine between the viewing ray and the point's mean viewing direction (60°).
-    pub min_view_cos: f64,
-    /// Window factor for points seen straight on (cosine above `straight_view_cos`), else
-    /// `oblique_radius_factor`.
-    pub straight_view_cos: f64,
-    pub straight_radius_factor: f64,
-    pub oblique_radius_factor: f64,
+    /// Distances, angles and window factors at which a point is looked for.
+    pub limits: ProjectionLimits,
     /// Nearest over second-nearest descriptor distance a match must beat.
     pub ratio: f32,
     /// Inliers a frame needs; at least `min_inliers_after_relocalisation` within
@@ -47,12 +39,7 @@ impl LocalMapSearch {
             neighbours_per_keyframe: 10,
             window: 3.0,
             window_after_relocalisation: 5.0,
-            min_distance_ratio: 0.8,
-            max_distance_ratio: 1.2,
-            min_view_cos: 0.5,
-            straight_view_cos: 0.998,
-            straight_radius_factor: 2.5,
-            oblique_radius_factor: 4.0,
+            limits: ProjectionLimits::default(),
             ratio: 0.8,
             min_inliers,
             min_inliers_after_relocalisation: 50,
@@ -105,37 +92,13 @@ impl LocalMapSearch {
                 if point.bad {
                     continue;
                 }
-                let Some((p_c, u, v)) = matcher::project(rig, &camera_from_world, &point.position)
+                let Some(projected) =
+                    self.limits
+                        .project(rig, &camera_from_world, &centre, point, window)
                 else {
                     continue;
                 };
-                let offset = point.position - centre;
-                let distance = offset.norm();
-                if distance < self.min_distance_ratio * point.min_distance
-                    || distance > self.max_distance_ratio * point.max_distance
-                {
-                    continue;
-                }
-                let view_cos = -offset.dot(&point.normal) / distance;
-                if view_cos < self.min_view_cos {
-                    continue;
-                }
-                let level = rig.predict_level(point.max_distance, distance);
-                let factor = if view_cos > self.straight_view_cos {
-                    self.straight_radius_factor
-                } else {
-                    self.oblique_radius_factor
-                };
-                candidates.push(Projected {
-                    u,
-                    v,
-                    right_u: u - rig.bf / p_c.z,
-                    min_level: level.saturating_sub(1),
-                    max_level: level,
-                    radius: window * factor * rig.scale(level),
-                    descriptor: point.descriptor,
-                    angle: None,
-                });
+                candidates.push(projected);
                 candidate_points.push(*p);
                 visible.push(*p);
             }

@@ -4,10 +4,8 @@
 use crate::frame::{Descriptor, Frame, Rig};
 use crate::map::{KeyFrameId, Map, MapPointId};
 use crate::markers;
-use nalgebra::{Vector2, Vector3};
-use vsgraphs_optim::pose_only::{
-    optimise_pose, Measurement, PoseObservation, PoseOnlyOptions, PoseOnlyResult,
-};
+use nalgebra::Vector3;
+use vsgraphs_optim::pose_only::{optimise_pose, PoseObservation, PoseOnlyOptions, PoseOnlyResult};
 use vsgraphs_optim::Se3;
 
 /// Where a matched 3-D point came from.
@@ -110,13 +108,5 @@ pub(super) fn descriptor_query(
 
 /// The pose observation of keypoint `i` of `frame` seeing `point`.
 fn observation(frame: &Frame, rig: &Rig, i: usize, point: Vector3<f64>) -> PoseObservation {
-    let k = &frame.keypoints[i];
-    PoseObservation {
-        point_in_world: point,
-        measured: match k.right_x {
-            Some(right) => Measurement::Stereo(Vector3::new(k.x, k.y, right)),
-            None => Measurement::Mono(Vector2::new(k.x, k.y)),
-        },
-        information: rig.information(usize::from(k.level)),
-    }
+    frame.keypoints[i].observation(rig, point)
 }

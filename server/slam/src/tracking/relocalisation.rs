@@ -1,8 +1,8 @@
-//! Finding a lost robot in its map without a vocabulary: from a mapped marker in view at once,
-//! else against a few keyframes per frame (the newest first, then round-robin back through the
-//! map): descriptor matches, a three-point RANSAC of rigid fits on the matches' depths (both
-//! sides' 3-D positions are known, which is more robust than PnP), pose optimisation, then the
-//! local map decides.
+//! Finding a lost robot in its map: from a mapped marker in view at once, else against the
+//! keyframes the place index finds by the frame's visual words, and one more per frame in
+//! turn (the newest first, then back through the map): descriptor matches, a three-point
+//! RANSAC of rigid fits on the matches' depths (both sides' 3-D positions are known, which is
+//! more robust than PnP), pose optimisation, then the local map decides.
 
 use super::local_map::LocalMapSearch;
 use super::matches::{descriptor_query, optimise, Matched, Source, Tracked};
@@ -11,21 +11,21 @@ use crate::local_mapping::PointStatistics;
 use crate::map::{KeyFrameId, Map, MapPointId};
 use crate::markers;
 use crate::matcher;
-use crate::rigid::{ransac_rigid, rigid_fit};
+use crate::places;
+use crate::rigid::{agrees, ransac_rigid, rigid_fit};
 use nalgebra::Vector3;
 use vsgraphs_optim::Se3;
 
 /// Nearest over second-nearest descriptor distance a match must beat.
 const RATIO: f32 = 0.75;
+/// Covisible keyframes whose scores add to a candidate's (ORB-SLAM's ten).
+const GROUP_NEIGHBOURS: usize = 10;
 /// Descriptor matches a keyframe needs, and inliers after the pose is optimised.
 const MIN_MATCHES: usize = 15;
 const MIN_INLIERS: usize = 15;
-/// RANSAC: samples drawn, pairs the best fit needs, and a pair's inlier distance (5 cm plus 2 %
-/// of its depth, the growth of RGB-D depth noise).
+/// RANSAC: samples drawn and pairs the best fit needs (an inlier: [`agrees`]).
 const RANSAC_SAMPLES: usize = 200;
 const RANSAC_MIN_INLIERS: usize = 6;
-const RANSAC_DISTANCE_M: f64 = 0.05;
-const RANSAC_DISTANCE_PER_DEPTH: f64 = 0.02;
 
 /// Where relocalisation goes on from, frame after frame.
 pub(super) struct Relocaliser {
@@ -89,7 +89,34 @@ impl Relocaliser {
                 return tracked;
             }
         }
-        let mut tries = self.candidates.min(keyframes);
+        // The keyframes whose words the frame shares first, then one more of the map in turn
+        // (words can miss a place whose texture repeats elsewhere).
+        let bag = places::bag_of(frame);
+        let recognised = map.places.candidates(
+            &bag,
+            0.0,
+            |_| false,
+            |k| {
+                map.neighbours(k)
+                    .iter()
+                    .take(GROUP_NEIGHBOURS)
+                    .map(|n| n.0)
+                    .collect()
+            },
+        );
+        let by_words = recognised
+            .iter()
+            .map(|c| c.keyframe)
+            .take(self.candidates)
+            .collect::<Vec<_>>();
+        for &k in &by_words {
+            if let Some(tracked) =
+                self.try_keyframe(map, frame, rig, search, k, fallback_reference, statistics)
+            {
+                return Some(tracked);
+            }
+        }
+        let mut tries = 1;
         for _ in 0..keyframes {
             if tries == 0 {
                 break;
@@ -97,41 +124,59 @@ impl Relocaliser {
             // Newest first, then backwards through the map, passing culled keyframes by.
             let k = KeyFrameId((keyframes - 1 - self.cursor % keyframes) as u32);
             self.cursor += 1;
-            if map.keyframe(k).is_culled() {
+            if map.keyframe(k).is_culled() || by_words.contains(&k) {
                 continue;
             }
             tries -= 1;
-            let Some(matched) = against_keyframe(map, frame, rig, k) else {
-                continue;
-            };
-            let candidates = matched.inliers;
-            let tracked = search.track(
-                map,
-                frame,
-                rig,
-                matched,
-                true,
-                &[],
-                fallback_reference,
-                statistics,
-            );
-            if let Some(tracked) = tracked {
-                tracing::debug!(
-                    stamp_ns = frame.timestamp_ns,
-                    keyframe = k.0,
-                    inliers = tracked.inliers,
-                    "relocalised against a keyframe"
-                );
-                self.cursor = 0;
+            if let Some(tracked) =
+                self.try_keyframe(map, frame, rig, search, k, fallback_reference, statistics)
+            {
                 return Some(tracked);
             }
+        }
+        None
+    }
+
+    /// The frame against one keyframe, then the local map around it.
+    #[allow(clippy::too_many_arguments)]
+    fn try_keyframe(
+        &mut self,
+        map: &Map,
+        frame: &Frame,
+        rig: &Rig,
+        search: &LocalMapSearch,
+        k: KeyFrameId,
+        fallback_reference: Option<KeyFrameId>,
+        statistics: &mut PointStatistics,
+    ) -> Option<Tracked> {
+        let matched = against_keyframe(map, frame, rig, k)?;
+        let candidates = matched.inliers;
+        let tracked = search.track(
+            map,
+            frame,
+            rig,
+            matched,
+            true,
+            &[],
+            fallback_reference,
+            statistics,
+        );
+        if let Some(tracked) = tracked {
             tracing::debug!(
                 stamp_ns = frame.timestamp_ns,
                 keyframe = k.0,
-                candidates,
-                "relocalisation failed on the local map"
+                inliers = tracked.inliers,
+                "relocalised against a keyframe"
             );
+            self.cursor = 0;
+            return Some(tracked);
         }
+        tracing::debug!(
+            stamp_ns = frame.timestamp_ns,
+            keyframe = k.0,
+            candidates,
+            "relocalisation failed on the local map"
+        );
         None
     }
 }
@@ -175,9 +220,7 @@ fn ransac_pose(pairs: &[(Vector3<f64>, Vector3<f64>)], seed: u64) -> Option<Se3>
     if pairs.len() < RANSAC_MIN_INLIERS {
         return None;
     }
-    let (_, best) = ransac_rigid(pairs, seed, RANSAC_SAMPLES, |pose, (w, c)| {
-        (pose.transform_point(c) - w).norm() < RANSAC_DISTANCE_M + RANSAC_DISTANCE_PER_DEPTH * c.z
-    })?;
+    let (_, best) = ransac_rigid(pairs, seed, RANSAC_SAMPLES, agrees)?;
     if best.len() < RANSAC_MIN_INLIERS {
         return None;
     }
