@@ -1,5 +1,5 @@
 //! Finding a lost robot in its map: from a mapped marker in view at once, else against the
-//! keyframes the place index finds by the frame's visual words, and one more per frame in
+//! keyframes the place index finds by the frame's visual words, and as many more per frame in
 //! turn (the newest first, then back through the map): descriptor matches, a three-point
 //! RANSAC of rigid fits on the matches' depths (both sides' 3-D positions are known, which is
 //! more robust than PnP), pose optimisation, then the local map decides.
@@ -89,8 +89,9 @@ impl Relocaliser {
                 return tracked;
             }
         }
-        // The keyframes whose words the frame shares first, then one more of the map in turn
-        // (words can miss a place whose texture repeats elsewhere).
+        // The keyframes whose words the frame shares first, then as many again of the map in
+        // turn, newest first: a robot that has just lost track is most likely near its newest
+        // keyframes, and words can miss a place whose texture repeats elsewhere.
         let bag = places::bag_of(frame);
         let recognised = map.places.candidates(
             &bag,
@@ -116,7 +117,7 @@ impl Relocaliser {
                 return Some(tracked);
             }
         }
-        let mut tries = 1;
+        let mut tries = self.candidates.min(keyframes);
         for _ in 0..keyframes {
             if tries == 0 {
                 break;
