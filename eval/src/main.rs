@@ -191,6 +191,11 @@ enum Command {
         /// either way).
         #[arg(long)]
         realtime: bool,
+        /// `STOP:RESUME`: the robot stops at frame STOP and starts again at frame RESUME in a
+        /// new session (the frames between are not sent), as a robot switched off, carried
+        /// elsewhere and restarted; its maps should end as one.
+        #[arg(long, value_parser = parse_restart)]
+        restart: Option<(usize, usize)>,
         /// Print JSON instead of the tables.
         #[arg(long)]
         json: bool,
@@ -262,6 +267,23 @@ enum Command {
 }
 
 /// Creates `dir` and writes a scenario run's building model there (`model.json`).
+/// `STOP:RESUME` frame numbers, RESUME not before STOP.
+fn parse_restart(text: &str) -> Result<(usize, usize), String> {
+    let (stop, resume) = text
+        .split_once(':')
+        .ok_or_else(|| format!("expected STOP:RESUME (frame numbers), got {text:?}"))?;
+    let number = |s: &str| {
+        s.trim()
+            .parse::<usize>()
+            .map_err(|e| format!("{s:?} is not a frame number: {e}"))
+    };
+    let (stop, resume) = (number(stop)?, number(resume)?);
+    if resume < stop {
+        return Err(format!("RESUME ({resume}) comes before STOP ({stop})"));
+    }
+    Ok((stop, resume))
+}
+
 fn write_model(dir: &std::path::Path, model: &BuildingModel) -> anyhow::Result<()> {
     std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
     std::fs::write(dir.join("model.json"), serde_json::to_string_pretty(model)?)
@@ -321,6 +343,7 @@ fn main() -> anyhow::Result<()> {
             out,
             dictionary,
             realtime,
+            restart,
             json,
         } => {
             let config = match config {
@@ -334,6 +357,7 @@ fn main() -> anyhow::Result<()> {
                 seed,
                 dictionary,
                 realtime,
+                restart,
                 ..ScenarioOptions::default()
             };
             if all_robots {
@@ -349,6 +373,8 @@ fn main() -> anyhow::Result<()> {
                 )?;
                 if let Some(dir) = out {
                     write_model(&dir, &run.model)?;
+                    run.estimate.write_tum(&dir.join("estimate.txt"))?;
+                    run.reference.write_tum(&dir.join("groundtruth.txt"))?;
                 }
                 if json {
                     println!("{}", serde_json::to_string_pretty(&run)?);

@@ -9,6 +9,7 @@ use crate::semantics::{self, Gates, MapAlignment, Rigid, SemanticReport};
 use anyhow::Context;
 use nalgebra::Vector3;
 use serde::Serialize;
+use std::collections::BTreeMap;
 use std::sync::mpsc;
 use std::time::Duration;
 use vsgraphs_datasets::Trajectory;
@@ -39,6 +40,9 @@ pub struct ScenarioOptions {
     /// Frames reach the pipeline at their times in the walk (a robot's pace), not as fast as
     /// it takes them, and the renderer (the robot) yields the cores to the pipeline.
     pub realtime: bool,
+    /// The robot stops at the first frame and starts again, in a new session, at the second
+    /// (frames between are not sent): a robot switched off, carried elsewhere and restarted.
+    pub restart: Option<(usize, usize)>,
 }
 
 /// Which semantic dictionary a scenario's run gets.
@@ -62,6 +66,7 @@ impl Default for ScenarioOptions {
             jpeg_quality: 90,
             dictionary: DictionaryChoice::V1,
             realtime: false,
+            restart: None,
         }
     }
 }
@@ -95,6 +100,12 @@ pub struct ScenarioRun {
     pub semantics_error: Option<String>,
     /// Loops closed in the last map, each against the walk's truth.
     pub loops: LoopScores,
+    /// Maps the server holds at the end, and the merges made (a robot that lost track for
+    /// long, or was restarted, starts a map that merges when it meets the old one).
+    pub maps_at_end: usize,
+    pub merges: Vec<MergeRow>,
+    /// Places recognised in two maps by visual words and refused, and why.
+    pub refused_places: Vec<(u32, u32, String)>,
     #[serde(skip)]
     pub model: BuildingModel,
     #[serde(skip)]
@@ -129,11 +140,7 @@ pub fn score_loops(view: &vsgraphs_proto::api::MapView, reference: &Trajectory) 
             .find(|k| k.id == id)
             .map(|k| k.timestamp_ns as f64 * 1e-9)
     };
-    let truth_at = |stamp: f64| {
-        let i = reference.stamps.partition_point(|&s| s < stamp - 1e-6);
-        (i < reference.len() && (reference.stamps[i] - stamp).abs() < 1e-3)
-            .then(|| reference.poses[i])
-    };
+    let truth_at = |stamp: f64| truth_at(reference, stamp);
     let mut scores = LoopScores::default();
     for edge in &view.loops {
         let (Some(older), Some(newer)) = (
@@ -215,6 +222,7 @@ pub fn run(
         .context("reading the building's ground truth as a model")?;
     let dictionary = dictionary_for(&building, options.dictionary)?;
 
+    let service = service_for(config, dictionary.clone());
     let (summary, poses) = run_walk(
         config,
         &renderer,
@@ -222,7 +230,7 @@ pub fn run(
         total,
         options,
         dictionary.as_ref(),
-        None,
+        Some(&service),
         progress,
     )?;
 
@@ -235,7 +243,16 @@ pub fn run(
             .collect();
         offline::trajectory(&kept)
     };
-    let estimate = in_last_map(&poses.refined);
+    // A restarted robot's maps may have merged: its poses in the map its last pose is in,
+    // each moved with its anchor keyframe, followed through the merges (the server's map ids).
+    let estimate = if options.restart.is_some() {
+        let after = offline::refined_after_merges(&service, &summary, &poses);
+        let last = after.last().map(|p| p.map);
+        let kept: Vec<_> = after.into_iter().filter(|p| Some(p.map) == last).collect();
+        offline::trajectory(&kept)
+    } else {
+        in_last_map(&poses.refined)
+    };
     let estimate_as_tracked = in_last_map(&poses.as_tracked);
     // SE(3) alignment and translation error, as evo_ape -a.
     let compare = Compare::default();
@@ -273,6 +290,18 @@ pub fn run(
         semantics,
         semantics_error,
         loops,
+        maps_at_end: service.len(),
+        merges: service
+            .merges()
+            .iter()
+            .map(|report| {
+                merge_row(
+                    report,
+                    &map_origins(&service, &[(0..next_map_id(&service), &reference)]),
+                )
+            })
+            .collect(),
+        refused_places: refused_places(&service),
         model,
         estimate,
         estimate_as_tracked,
@@ -298,6 +327,7 @@ fn run_walk(
     std::thread::scope(|scope| {
         let quality = options.jpeg_quality;
         let realtime = options.realtime;
+        let restart = options.restart;
         scope.spawn(move || {
             // At a robot's pace the renderer stands for the robot, whose computer is not the
             // server's: it takes the cores the pipeline leaves idle (a failure to lower its
@@ -305,13 +335,14 @@ fn run_walk(
             if realtime {
                 let _ = rustix::process::nice(19);
             }
-            for i in 0..total {
+            for i in sent(total, restart) {
                 let frame = render_frame(renderer, walk, i);
                 let encoded = encode_frame(&frame, quality, DepthEncoding::Rvl)
                     .map(|(colour, depth)| OfflineFrame {
                         timestamp_ns: (walk.times[i] * 1e9).round() as u64,
                         colour,
                         depth,
+                        session: u32::from(restart.is_some_and(|(_, resume)| i >= resume)),
                     })
                     .map_err(|e| format!("encoding frame {i}: {e}"));
                 if sender.send(encoded).is_err() {
@@ -322,7 +353,7 @@ fn run_walk(
         let source = FrameSource {
             camera: &camera,
             depth_scale: DEPTH_SCALE,
-            total,
+            total: sent(total, options.restart).count(),
             dictionary,
             maps,
         };
@@ -337,6 +368,19 @@ fn run_walk(
         });
         offline::run_frames(config, source, paced, progress)
     })
+}
+
+/// A server's maps as the configuration sets them up.
+fn service_for(config: &PipelineConfig, dictionary: Option<Dictionary>) -> MapService {
+    MapService::with_semantics(config.semantics.enabled, dictionary)
+        .with_whole_map_optimisation(config.semantics.optimise_every_keyframes)
+        .with_live_merges(config.atlas.merge_maps)
+        .with_loop_closing(config.atlas.close_loops)
+}
+
+/// The frames of a walk of `total` that are sent: all, or those outside a restart's gap.
+fn sent(total: usize, restart: Option<(usize, usize)>) -> impl Iterator<Item = usize> {
+    (0..total).filter(move |&i| restart.is_none_or(|(stop, resume)| i < stop || i >= resume))
 }
 
 /// A robot's part in a run of every robot of a scenario.
@@ -367,6 +411,9 @@ pub struct MergeRow {
     pub marker_rms_m: f64,
     /// Points of the source found in the target where the alignment puts them.
     pub point_inliers: usize,
+    /// The target's and the source's keyframe that showed one place, when visual words
+    /// recognised it (none: markers did).
+    pub place_keyframes: Option<(u32, u32)>,
     pub fused_markers: usize,
     pub new_markers: usize,
     /// Points of the seam made one.
@@ -377,6 +424,12 @@ pub struct MergeRow {
     pub moved_max_m: Option<f64>,
     /// Live keyframes of the target and of the source before the merge.
     pub keyframes: (usize, usize),
+    /// How far the merge's transform is from the true one (the maps' origins placed by the
+    /// walks; each map's drift up to the seam included), metres and degrees; a merge beyond
+    /// [`WRONG_LOOP_M`] or [`WRONG_LOOP_DEG`] is wrong.
+    pub error_m: Option<f64>,
+    pub error_deg: Option<f64>,
+    pub wrong: bool,
     /// Milliseconds on the target's writer: aligning, moving the source in, optimising.
     pub align_ms: f64,
     pub absorb_ms: f64,
@@ -391,6 +444,8 @@ pub struct TogetherRun {
     pub merges: Vec<MergeRow>,
     /// Pairs of maps not merged, and why.
     pub not_merged: Vec<(u32, u32, String)>,
+    /// Places recognised in two maps by visual words and refused, and why.
+    pub refused_places: Vec<(u32, u32, String)>,
     /// Maps left at the end.
     pub maps: usize,
     /// The map with the most keyframes at the end, which is scored, and its live keyframes.
@@ -402,6 +457,59 @@ pub struct TogetherRun {
     pub semantics_error: Option<String>,
     #[serde(skip)]
     pub model: BuildingModel,
+    /// Every robot's poses in the final map and its walk, robot `r`'s stamps moved by
+    /// `r` × 10⁵ s (one trajectory holds them all).
+    #[serde(skip)]
+    pub estimate: Trajectory,
+    #[serde(skip)]
+    pub reference: Trajectory,
+}
+
+/// Where each map's frame lies in the building, by the server's map id: a map's first
+/// keyframe where the walk of the robot that started the map put that camera. `runs`: the ids
+/// of the maps each robot started (robots run one after the other), and its walk.
+fn map_origins(
+    service: &MapService,
+    runs: &[(std::ops::Range<u32>, &Trajectory)],
+) -> BTreeMap<u32, nalgebra::Isometry3<f64>> {
+    let mut origins = BTreeMap::new();
+    for (ids, walk_reference) in runs {
+        for id in ids.clone() {
+            let Some(view) = service.last_snapshot(MapId(id)) else {
+                continue;
+            };
+            let Some(first) = view.keyframes.first() else {
+                continue;
+            };
+            let pose = vsgraphs_pipeline::model::se3_from_api(&first.world_from_camera);
+            let pose = nalgebra::Isometry3::from_parts(pose.translation.into(), pose.rotation);
+            if let Some(truth) = truth_at(walk_reference, first.timestamp_ns as f64 * 1e-9) {
+                origins.insert(id, truth * pose.inverse());
+            }
+        }
+    }
+    origins
+}
+
+/// One past the largest map id the service has given (maps merged away included).
+fn next_map_id(service: &MapService) -> u32 {
+    let live = service.all().into_iter().map(|(id, _)| id.0);
+    let merged = service.merges().into_iter().map(|m| m.source.0);
+    live.chain(merged).max().map_or(0, |id| id + 1)
+}
+
+fn refused_places(service: &MapService) -> Vec<(u32, u32, String)> {
+    service
+        .refused_places()
+        .into_iter()
+        .map(|r| (r.target.0, r.source.0, r.reason))
+        .collect()
+}
+
+/// The reference pose at `stamp` (within a millisecond).
+fn truth_at(reference: &Trajectory, stamp: f64) -> Option<nalgebra::Isometry3<f64>> {
+    let i = reference.stamps.partition_point(|&s| s < stamp - 1e-6);
+    (i < reference.len() && (reference.stamps[i] - stamp).abs() < 1e-3).then(|| reference.poses[i])
 }
 
 /// Stamps of robot `r` are moved this far apart from the others', seconds, so that one
@@ -432,11 +540,10 @@ pub fn run_together(
     let truth: BuildingModel = serde_json::from_str(&building.ground_truth_json())
         .context("reading the building's ground truth as a model")?;
     let dictionary = dictionary_for(&building, options.dictionary)?;
-    let service = MapService::with_semantics(config.semantics.enabled, dictionary.clone())
-        .with_whole_map_optimisation(config.semantics.optimise_every_keyframes)
-        .with_live_merges(config.atlas.merge_maps);
+    let service = service_for(config, dictionary.clone());
     let mut runs = Vec::new();
     for (r, walk) in walks.iter().enumerate() {
+        let first_map = next_map_id(&service);
         let total = options
             .limit
             .map_or(walk.times.len(), |l| l.min(walk.times.len()));
@@ -469,6 +576,7 @@ pub fn run_together(
             poses,
             reference,
             ate_alone_rmse,
+            first_map..next_map_id(&service),
         ));
     }
     // Maps merged as robots mapped (live merges), then every pair left, the older as the
@@ -490,7 +598,18 @@ pub fn run_together(
         }
         break;
     }
-    let merges = service.merges().iter().map(merge_row).collect();
+    let origins = map_origins(
+        &service,
+        &runs
+            .iter()
+            .map(|(_, _, _, reference, _, ids)| (ids.clone(), reference))
+            .collect::<Vec<_>>(),
+    );
+    let merges = service
+        .merges()
+        .iter()
+        .map(|report| merge_row(report, &origins))
+        .collect();
     let final_map = service
         .all()
         .into_iter()
@@ -499,7 +618,7 @@ pub fn run_together(
     let mut estimate = Trajectory::default();
     let mut reference = Trajectory::default();
     let mut robots = Vec::new();
-    for (r, (robot, summary, poses, walk_reference, ate_alone_rmse)) in runs.iter().enumerate() {
+    for (r, (robot, summary, poses, walk_reference, ate_alone_rmse, _)) in runs.iter().enumerate() {
         let by = r as f64 * ROBOT_STAMP_OFFSET_S;
         let kept: Vec<_> = offline::refined_after_merges(&service, summary, poses)
             .into_iter()
@@ -528,6 +647,7 @@ pub fn run_together(
         robots,
         merges,
         not_merged,
+        refused_places: refused_places(&service),
         maps: service.len(),
         final_map: final_map.map(|id| id.0),
         final_keyframes: final_map
@@ -537,12 +657,29 @@ pub fn run_together(
         semantics,
         semantics_error,
         model,
+        estimate,
+        reference,
     })
 }
 
-fn merge_row(report: &MergeReport) -> MergeRow {
+fn merge_row(report: &MergeReport, origins: &BTreeMap<u32, nalgebra::Isometry3<f64>>) -> MergeRow {
     let o = &report.outcome;
+    let error = origins
+        .get(&report.target.0)
+        .zip(origins.get(&report.source.0))
+        .map(|(target, source)| {
+            let t = &o.absorbed.target_from_source;
+            let estimate = nalgebra::Isometry3::from_parts(t.translation.into(), t.rotation);
+            let error = (target.inverse() * source).inverse() * estimate;
+            (
+                error.translation.vector.norm(),
+                error.rotation.angle().to_degrees(),
+            )
+        });
     MergeRow {
+        error_m: error.map(|e| e.0),
+        error_deg: error.map(|e| e.1),
+        wrong: error.is_some_and(|(m, deg)| m > WRONG_LOOP_M || deg > WRONG_LOOP_DEG),
         target: report.target.0,
         source: report.source.0,
         markers: o.alignment.markers.clone(),
@@ -550,6 +687,10 @@ fn merge_row(report: &MergeReport) -> MergeRow {
         turned: o.alignment.turned.clone(),
         marker_rms_m: o.alignment.marker_rms_m,
         point_inliers: o.alignment.point_inliers,
+        place_keyframes: o
+            .alignment
+            .place
+            .map(|p| (p.target_keyframe.0, p.source_keyframe.0)),
         fused_markers: o.absorbed.fused_markers.len(),
         new_markers: o.absorbed.new_markers.len(),
         fused_points: o.absorbed.fused_points,
@@ -577,12 +718,14 @@ pub fn print_together(run: &TogetherRun) {
     }
     for m in &run.merges {
         println!(
-            "merged map {} into map {}: markers {:?} at one place ({:.3} m RMS; turned in one map: \
+            "merged map {} into map {} ({} m, {}° from the truth): markers {:?} at one place ({:.3} m RMS; turned in one map: \
              {:?}), {:?} not; {} points confirm; {} markers fused, {} new, {} points fused; \
              whole map optimised: {:?}, moved at most {:?} m; keyframes {} + {}, ms: align \
              {:.1}, absorb {:.1}, optimise {:.1}",
             m.source,
             m.target,
+            m.error_m.map_or("?".into(), |e| format!("{e:.3}")),
+            m.error_deg.map_or("?".into(), |e| format!("{e:.2}")),
             m.markers,
             m.marker_rms_m,
             m.turned,
@@ -600,8 +743,19 @@ pub fn print_together(run: &TogetherRun) {
             m.optimise_ms
         );
     }
+    for m in run.merges.iter().filter(|m| m.place_keyframes.is_some()) {
+        if let Some((t, s)) = m.place_keyframes {
+            println!(
+                "map {} into map {} by visual words: keyframe {s} showed keyframe {t}'s place",
+                m.source, m.target
+            );
+        }
+    }
     for (target, source, why) in &run.not_merged {
         println!("map {source} not merged into map {target}: {why}");
+    }
+    for (target, source, why) in &run.refused_places {
+        println!("place recognised in maps {target} and {source}, refused: {why}");
     }
     println!(
         "{} map(s) at the end; scored: {:?}",

@@ -412,6 +412,10 @@ pub struct MapMerge {
     /// Points of the source found again in the target where the alignment puts them, each
     /// now one point.
     pub point_inliers: u64,
+    /// The target's and the source's keyframe that showed one place, when visual words
+    /// recognised it (none: the shared markers did).
+    #[serde(default)]
+    pub place_keyframes: Option<[u32; 2]>,
     /// Live keyframes of the target and of the source before the merge.
     pub target_keyframes: u64,
     pub source_keyframes: u64,

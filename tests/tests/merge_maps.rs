@@ -3,7 +3,8 @@
 //! back), one after the other into one server's maps. Each robot's map holds one room; once the
 //! second robot maps a marker the first mapped, the maps are merged while it walks, it goes on
 //! mapping in the merged map, and that map holds the whole building, both trajectories in one
-//! frame.
+//! frame. Without markers in the maps, a robot restarted in a new session meets its old map
+//! where a keyframe of the new one shows a place of the old, found by visual words.
 
 use vsgraphs_eval::scenario::{self, ScenarioOptions};
 use vsgraphs_eval::semantics::SemanticReport;
@@ -77,4 +78,52 @@ fn two_robots_maps_merge_into_one_building() {
             kind.kind
         );
     }
+}
+
+#[test]
+fn a_restarted_robot_merges_by_a_place_it_recognises_without_markers() {
+    // seq01's robot maps its first room, is switched off, carried on and restarted as a new
+    // session near where it started; markers are not mapped, so only the visual words can tell
+    // that its new map shows the old one's place.
+    let scenario = Scenario::builtin("seq01").unwrap();
+    let mut config = PipelineConfig::default();
+    config.tracking.marker_landmarks = false;
+    let options = ScenarioOptions {
+        restart: Some((300, 1450)),
+        ..ScenarioOptions::default()
+    };
+    let run = scenario::run(&config, &scenario, &options, |_, _| {}).unwrap();
+    eprintln!("events: {:?}", run.events);
+    for m in &run.merges {
+        eprintln!("merge: {m:?}");
+    }
+    for r in &run.refused_places {
+        eprintln!("refused: {r:?}");
+    }
+    assert!(
+        run.events.iter().any(|(_, e)| e.contains("map 1 started")),
+        "the restart starts a map: {:?}",
+        run.events
+    );
+    assert_eq!(run.maps_at_end, 1);
+    assert_eq!(run.merges.len(), 1);
+    let merge = &run.merges[0];
+    assert!(merge.markers.is_empty(), "{merge:?}");
+    assert!(merge.place_keyframes.is_some(), "{merge:?}");
+    assert!(merge.point_inliers >= 30, "{merge:?}");
+    // The merge's transform against the walk's truth.
+    assert!(!merge.wrong, "{merge:?}");
+    // Tracking went on in the merged map: its last event is the merge, and the robot's poses
+    // after it are scored in the one map.
+    assert!(
+        run.events.last().unwrap().1.contains("merged"),
+        "{:?}",
+        run.events
+    );
+    let ate = run.ate.as_ref().unwrap();
+    assert_eq!(ate.matched, run.tracked);
+    // The simulated camera gives centimetre-class trajectories; a merge a few degrees off
+    // would put the restarted part decimetres away.
+    eprintln!("ATE {:.4} m", ate.stats.rmse);
+    assert!(ate.stats.rmse < 0.02, "{}", ate.stats.rmse);
 }

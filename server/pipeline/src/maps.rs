@@ -20,6 +20,8 @@ use std::thread::JoinHandle;
 use vsgraphs_proto::api::MapView;
 use vsgraphs_semantics::{Dictionary, SemanticMap};
 use vsgraphs_slam::local_mapping::{MergeOutcome, PointStatistics};
+use vsgraphs_slam::loops;
+use vsgraphs_slam::merge::{self, Evidence, Place};
 use vsgraphs_slam::walls::WallPrior;
 use vsgraphs_slam::{
     KeyFrameId, LocalMapper, Map, MapId, MapMove, MapReply, MapRequest, MapWriter, MappingConfig,
@@ -51,6 +53,11 @@ struct Inner {
     /// Pairs of maps tried, with how many markers they shared then: a pair is tried again only
     /// once it shares more.
     tried: Mutex<BTreeMap<(MapId, MapId), usize>>,
+    /// Places recognised in two maps but refused.
+    refused: Mutex<Vec<RefusedPlace>>,
+    /// Places of another map a map's keyframes recognised, by (map, other map), until enough
+    /// keyframes in a row agree.
+    places_seen: Mutex<BTreeMap<(MapId, MapId), Sightings>>,
     semantics: Arc<RwLock<Semantics>>,
 }
 
@@ -60,6 +67,24 @@ pub struct Merged {
     pub into: MapId,
     pub keyframe_offset: u32,
     pub into_from_merged: vsgraphs_slam::Se3,
+}
+
+/// How a map's recent keyframes saw a place of another map: the latest transform, how many
+/// keyframes in a row agreed on it, and how many since did not see it.
+#[derive(Clone, Copy, Debug)]
+struct Sightings {
+    other_from_here: vsgraphs_slam::Se3,
+    agreeing: usize,
+    missed: usize,
+}
+
+/// A place recognised in two maps by visual words that did not merge them, and why.
+#[derive(Clone, Debug)]
+pub struct RefusedPlace {
+    pub target: MapId,
+    pub source: MapId,
+    pub place: Place,
+    pub reason: String,
 }
 
 /// What [`MapService::merge`] did.
@@ -86,6 +111,10 @@ impl MergeReport {
             disagreeing: o.alignment.disagreeing.iter().map(|&(id, _)| id).collect(),
             marker_rms_m: o.alignment.marker_rms_m,
             point_inliers: o.alignment.point_inliers as u64,
+            place_keyframes: o
+                .alignment
+                .place
+                .map(|p| [p.target_keyframe.0, p.source_keyframe.0]),
             target_keyframes: o.keyframes.0 as u64,
             source_keyframes: o.keyframes.1 as u64,
             moved_max_m: o
@@ -174,9 +203,17 @@ enum Command {
     },
     /// Rebuild the semantic layer: its settings changed.
     Refresh,
-    /// Join another map, whose writer has stopped, to this one.
+    /// Wait, doing nothing, until told whether to stop (`true`: the map was merged into
+    /// another) or to go on (`false`, or the sender gone: the merge failed). Acknowledged on
+    /// `paused` once waiting.
+    Pause {
+        paused: mpsc::SyncSender<()>,
+        until: mpsc::Receiver<bool>,
+    },
+    /// Join another map, whose writer is paused, to this one.
     Absorb {
         source: Arc<SharedMap>,
+        evidence: Evidence,
         reply: mpsc::SyncSender<Result<MergeOutcome, Failure>>,
     },
 }
@@ -322,11 +359,16 @@ impl MapService {
     /// `target` at its next frame ([`MapWriter::moved`]).
     pub fn merge(&self, target: MapId, source: MapId) -> Result<MergeReport, TrackError> {
         let _one_at_a_time = lock(&self.inner.merging);
-        self.merge_now(target, source)
+        self.merge_now(target, source, Evidence::Markers)
     }
 
-    /// [`MapService::merge`], with the service's merge lock held.
-    fn merge_now(&self, target: MapId, source: MapId) -> Result<MergeReport, TrackError> {
+    /// [`MapService::merge`] by what `evidence` names, with the service's merge lock held.
+    fn merge_now(
+        &self,
+        target: MapId,
+        source: MapId,
+        evidence: Evidence,
+    ) -> Result<MergeReport, TrackError> {
         if target == source {
             return Err(TrackError::Writer(format!(
                 "map {} cannot be merged into itself",
@@ -334,18 +376,44 @@ impl MapService {
             )));
         }
         let (into, from) = (self.entry(target)?, self.entry(source)?);
-        // Checked before anything stops, so that maps that do not align stay as they are.
-        vsgraphs_slam::merge::align_by_markers(&into.map.read(), &from.map.read())?;
+        // Checked before anything waits, so that maps that do not align stay as they are.
+        merge::align(&into.map.read(), &from.map.read(), &evidence)?;
+        // The source's writer lands what it has pending and waits while the target takes the
+        // source in: it ends if that succeeds and goes on if not (an alignment can fail the
+        // second time, on the map as the pending work left it), so a failed merge loses nothing.
         Self::ask(&from, MapRequest::Flush(PointStatistics::default()))?;
+        let (paused, is_paused) = mpsc::sync_channel(1);
+        let (resume, until) = mpsc::sync_channel(1);
+        let sent = lock(&from.commands)
+            .as_ref()
+            .is_some_and(|commands| commands.send(Command::Pause { paused, until }).is_ok());
+        if !sent || is_paused.recv().is_err() {
+            return Err(TrackError::Writer(
+                "the source map's writer has stopped".into(),
+            ));
+        }
+        let outcome = self.absorb_into(&into, &from, evidence)?;
+        let _ = resume.send(true);
         lock(&from.commands).take();
         if let Some(thread) = lock(&from.thread).take() {
             let _ = thread.join();
         }
+        Ok(self.record_merge(target, source, (&into, &from), outcome))
+    }
+
+    /// Has `into`'s writer take `from` in; `from`'s writer is paused.
+    fn absorb_into(
+        &self,
+        into: &MapEntry,
+        from: &MapEntry,
+        evidence: Evidence,
+    ) -> Result<MergeOutcome, TrackError> {
         let (reply, answer) = mpsc::sync_channel(1);
         let sent = lock(&into.commands).as_ref().is_some_and(|commands| {
             commands
                 .send(Command::Absorb {
                     source: from.map.clone(),
+                    evidence,
                     reply,
                 })
                 .is_ok()
@@ -355,16 +423,24 @@ impl MapService {
                 "the target map's writer has stopped".into(),
             ));
         }
-        let outcome = match answer.recv() {
-            Ok(Ok(outcome)) => outcome,
-            Ok(Err(Failure::Error(e))) => return Err(e),
+        match answer.recv() {
+            Ok(Ok(outcome)) => Ok(outcome),
+            Ok(Err(Failure::Error(e))) => Err(e),
             Ok(Err(Failure::Panic(payload))) => std::panic::resume_unwind(payload),
-            Err(_) => {
-                return Err(TrackError::Writer(
-                    "the target map's writer stopped before answering".into(),
-                ))
-            }
-        };
+            Err(_) => Err(TrackError::Writer(
+                "the target map's writer stopped before answering".into(),
+            )),
+        }
+    }
+
+    /// Records a merge made: where the source went, for readers and for its robots.
+    fn record_merge(
+        &self,
+        target: MapId,
+        source: MapId,
+        (into, from): (&MapEntry, &MapEntry),
+        outcome: MergeOutcome,
+    ) -> MergeReport {
         let record = Merged {
             into: target,
             keyframe_offset: outcome.absorbed.keyframe_offset,
@@ -399,7 +475,7 @@ impl MapService {
             outcome,
         };
         lock(&self.inner.merge_log).push(report.clone());
-        Ok(report)
+        report
     }
 
     /// Merges maps as soon as they share markers (see [`MapService::merge_where_shared`]), or
@@ -412,6 +488,148 @@ impl MapService {
     /// Every merge so far, oldest first.
     pub fn merges(&self) -> Vec<MergeReport> {
         lock(&self.inner.merge_log).clone()
+    }
+
+    /// Merges map `map`, whose keyframe `keyframe` is new, with the maps it shows one place
+    /// with, when live merges are on: first every map that holds a marker it holds
+    /// ([`MapService::merge_where_shared`]); then, if none did, the first map that shows the
+    /// place the keyframe shows by visual words ([`MapService::merge_where_seen`]). The map
+    /// with more keyframes takes the other in (the older on a tie). Returns the merges made.
+    pub fn merge_where_recognised(&self, map: MapId, keyframe: KeyFrameId) -> Vec<MergeReport> {
+        if !self.inner.merge_live.load(Ordering::Relaxed) {
+            return Vec::new();
+        }
+        let made = self.merge_where_shared(map);
+        if !made.is_empty() {
+            return made;
+        }
+        self.merge_where_seen(map, keyframe).into_iter().collect()
+    }
+
+    /// Merges map `map` with the first other map that shows the place its keyframe
+    /// `keyframe` shows ([`vsgraphs_slam::loops::recognise_in`], then
+    /// [`merge::align_by_place`]), when live merges are on. A map alone costs nothing; each
+    /// other map, a look-up in its index of words and at most three verifications, on the
+    /// calling robot's worker (so an offline run makes the same merges every time). A place
+    /// recognised but refused (too few points around it, a marker that says the place is
+    /// another) is logged and counted ([`MapService::refused_places`]).
+    pub fn merge_where_seen(&self, map: MapId, keyframe: KeyFrameId) -> Option<MergeReport> {
+        if !self.inner.merge_live.load(Ordering::Relaxed) {
+            return None;
+        }
+        let _one_at_a_time = lock(&self.inner.merging);
+        let here = self.entry(map).ok()?;
+        let others: Vec<(MapId, Arc<MapEntry>)> = lock(&self.inner.maps)
+            .iter()
+            .filter(|(&id, _)| id != map)
+            .map(|(&id, entry)| (id, entry.clone()))
+            .collect();
+        for (other, entry) in others {
+            let found = {
+                let own = here.map.read();
+                let (Some(rig), Some(k)) =
+                    (own.rig.clone(), own.keyframes.get(keyframe.0 as usize))
+                else {
+                    return None;
+                };
+                if k.is_culled() {
+                    return None;
+                }
+                let old = entry.map.read();
+                loops::recognise_in(&own, &rig, keyframe, &old)
+                    .map(|found| (found, k.world_from_camera))
+            };
+            let pair = (map, other);
+            let Some((found, world_from_keyframe)) = found else {
+                // A place seen once is forgotten after a few keyframes that do not see it.
+                let mut seen = lock(&self.inner.places_seen);
+                if let Some(sightings) = seen.get_mut(&pair) {
+                    sightings.missed += 1;
+                    if sightings.missed > merge::PLACE_MISSES {
+                        seen.remove(&pair);
+                    }
+                }
+                continue;
+            };
+            let other_from_here = found
+                .world_from_camera
+                .compose(&world_from_keyframe.inverse());
+            let agreeing = {
+                let mut seen = lock(&self.inner.places_seen);
+                let sightings = seen.entry(pair).or_insert(Sightings {
+                    other_from_here,
+                    agreeing: 0,
+                    missed: 0,
+                });
+                let at = world_from_keyframe.translation;
+                if merge::places_agree(&sightings.other_from_here, &other_from_here, &at) {
+                    sightings.agreeing += 1;
+                } else {
+                    sightings.agreeing = 1;
+                }
+                sightings.other_from_here = other_from_here;
+                sightings.missed = 0;
+                sightings.agreeing
+            };
+            tracing::debug!(
+                map = map.0,
+                other = other.0,
+                keyframe = keyframe.0,
+                other_keyframe = found.keyframe.0,
+                inliers = found.inliers,
+                agreeing,
+                "a place of another map recognised"
+            );
+            if agreeing < merge::PLACE_AGREEMENTS {
+                continue;
+            }
+            lock(&self.inner.places_seen).remove(&pair);
+            let size = |entry: &MapEntry, id: MapId| {
+                let view = lock(&entry.snapshot).view.clone();
+                (view.keyframe_count, std::cmp::Reverse(id))
+            };
+            let (target, source, place) = if size(&entry, other) >= size(&here, map) {
+                let place = Place {
+                    target_keyframe: found.keyframe,
+                    source_keyframe: keyframe,
+                    target_from_source: other_from_here,
+                };
+                (other, map, place)
+            } else {
+                let place = Place {
+                    target_keyframe: keyframe,
+                    source_keyframe: found.keyframe,
+                    target_from_source: other_from_here.inverse(),
+                };
+                (map, other, place)
+            };
+            match self.merge_now(target, source, Evidence::Place(place)) {
+                Ok(report) => return Some(report),
+                Err(error) => {
+                    tracing::info!(
+                        target = target.0,
+                        source = source.0,
+                        target_keyframe = place.target_keyframe.0,
+                        source_keyframe = place.source_keyframe.0,
+                        inliers = found.inliers,
+                        %error,
+                        "a place recognised in two maps was not merged"
+                    );
+                    lock(&self.inner.refused).push(RefusedPlace {
+                        target,
+                        source,
+                        place,
+                        reason: error.to_string(),
+                    });
+                }
+            }
+        }
+        None
+    }
+
+    /// Places recognised in two maps by visual words but refused, oldest first.
+    pub fn refused_places(&self) -> Vec<RefusedPlace> {
+        lock(&self.inner.refused).clone()
     }
 
     /// Merges map `map` with every other map that holds a marker it holds, when live merges
@@ -458,7 +676,7 @@ impl MapService {
                 } else {
                     (*other, current)
                 };
-                match self.merge_now(target, source) {
+                match self.merge_now(target, source, Evidence::Markers) {
                     Ok(report) => {
                         made.push(report);
                         current = target;
@@ -638,10 +856,22 @@ impl Writer {
                     self.guarded("the map's semantic layer", Self::publish_semantics);
                     continue;
                 }
-                Command::Absorb { source, reply } => {
+                Command::Pause { paused, until } => {
+                    let _ = paused.send(());
+                    if until.recv() == Ok(true) {
+                        break;
+                    }
+                    continue;
+                }
+                Command::Absorb {
+                    source,
+                    evidence,
+                    reply,
+                } => {
                     let outcome = catch_unwind(AssertUnwindSafe(|| {
                         let source = source.read();
-                        self.mapper.absorb(&mut self.map.write(), &source)
+                        self.mapper
+                            .absorb(&mut self.map.write(), &source, &evidence)
                     }));
                     let answer = match outcome {
                         Ok(Ok(outcome)) => Ok(outcome),

@@ -93,6 +93,9 @@ pub struct OfflineFrame {
     pub timestamp_ns: u64,
     pub colour: ColourImage,
     pub depth: DepthImage,
+    /// The robot's session (0 for most runs): a new number is a robot restarted, as a live
+    /// robot that reconnects with a new session id.
+    pub session: u32,
 }
 
 /// A run's tracked frames, oldest first, two ways.
@@ -123,6 +126,7 @@ pub fn run(
                 timestamp_ns: files.timestamp_ns,
                 colour,
                 depth,
+                session: 0,
             },
         )
     });
@@ -192,6 +196,7 @@ pub fn run_frames(
             timestamp_ns: source_ns,
             colour,
             depth,
+            session,
         } = match frame {
             Ok(frame) => frame,
             Err(message) => {
@@ -204,7 +209,11 @@ pub fn run_frames(
         let timestamp_ns = source_ns.saturating_sub(first) + 1;
         let bytes = RgbdFrame {
             robot_id: OFFLINE_ROBOT.into(),
-            session_id: "offline".into(),
+            session_id: if session == 0 {
+                "offline".into()
+            } else {
+                format!("offline-{session}")
+            },
             sequence,
             timestamp_ns,
             camera: Some(source.camera.clone()),

@@ -345,13 +345,14 @@ fn track(
         Ok(result) => (Some(result), None),
         Err(e) => (None, Some(e.to_string())),
     };
-    // A keyframe may have mapped a marker another map holds: the maps may be one now. The
-    // robot of a map merged away follows it at its next frame.
-    if let (Some(_), Some((_, map))) = (
+    // A keyframe may have mapped a marker another map holds, or show a place another map
+    // shows: the maps may be one now. The robot of a map merged away follows it at its next
+    // frame.
+    if let (Some(keyframe), Some((_, map))) = (
         result.as_ref().and_then(|r| r.keyframe),
         tracker.active_map(),
     ) {
-        maps.merge_where_shared(map.id());
+        maps.merge_where_recognised(map.id(), keyframe);
     }
     let state = match tracker.state() {
         vsgraphs_slam::TrackingState::Initialising => TrackingState::Initialising,

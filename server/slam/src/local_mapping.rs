@@ -148,6 +148,9 @@ pub struct LocalMapper {
     close_loops: bool,
     since_loop: usize,
     loop_check: Option<(KeyFrameId, Rig)>,
+    /// The newest keyframe of each robot writing to the map, as far as the requests tell
+    /// ([`Heads`]): optimisations of the whole map hold every robot's window still.
+    heads: Heads,
 }
 
 /// What joining another map to this one did ([`LocalMapper::absorb`]).
@@ -180,18 +183,25 @@ impl LocalMapper {
             close_loops: false,
             since_loop: LOOP_GAP,
             loop_check: None,
+            heads: Heads::default(),
         }
     }
 
     /// Joins `source`, another map of the same place, to `map` ([`merge`]): what is pending
-    /// lands first, the maps are aligned by the markers both hold and the points around them,
+    /// lands first, the maps are aligned by what `evidence` names (the markers both hold, or a
+    /// place both show) and the points around it,
     /// `source` is moved in, and the whole map is optimised at once so that the two parts meet
     /// where they share markers and points (this map's newest keyframe and its window hold
     /// still: the part moved in comes to it). Nothing changes when the maps do not align.
-    pub fn absorb(&mut self, map: &mut Map, source: &Map) -> Result<MergeOutcome, TrackError> {
+    pub fn absorb(
+        &mut self,
+        map: &mut Map,
+        source: &Map,
+        evidence: &merge::Evidence,
+    ) -> Result<MergeOutcome, TrackError> {
         let keyframes = (map.live_keyframes(), source.live_keyframes());
         let started = Instant::now();
-        let alignment = merge::align_by_markers(map, source)?;
+        let alignment = merge::align(map, source, evidence)?;
         let align_time = started.elapsed();
         self.finish_local_ba(map)?;
         self.land_whole_map(map, true);
@@ -203,15 +213,13 @@ impl LocalMapper {
         let started = Instant::now();
         // A robot may be tracking at the newest keyframes of either part: both hold still, and
         // the correction goes into the older parts.
-        let held =
-            |newest: KeyFrameId| std::iter::once(newest).chain(mapping::local_window(map, newest));
-        let source_newest = source_newest.map(|k| absorbed.keyframe(k));
+        if let Some(k) = source_newest {
+            self.heads.add(absorbed.keyframe(k));
+        }
         let whole_map = match (map.rig.clone(), newest) {
             (Some(rig), Some(newest)) => {
-                let hold: HashSet<KeyFrameId> = held(newest)
-                    .chain(source_newest.into_iter().flat_map(held))
-                    .collect();
-
+                let mut hold = self.heads.held(map);
+                hold.extend(std::iter::once(newest).chain(mapping::local_window(map, newest)));
                 // The maps are one already: a failed solve leaves the parts where the
                 // alignment put them, and the next whole-map optimisation tries again.
                 match global::optimise_map(map, &rig, &self.walls, &hold, WHOLE_MAP_ITERATIONS) {
@@ -310,9 +318,8 @@ impl LocalMapper {
         let Some(newest) = newest_live(map) else {
             return Ok(());
         };
-        let hold: HashSet<KeyFrameId> = std::iter::once(newest)
-            .chain(mapping::local_window(map, newest))
-            .collect();
+        let mut hold = self.heads.held(map);
+        hold.extend(std::iter::once(newest).chain(mapping::local_window(map, newest)));
         let Some(job) = GlobalJob::prepare(map, rig, &self.walls, &hold, WHOLE_MAP_ITERATIONS)
         else {
             return Ok(());
@@ -389,6 +396,7 @@ impl LocalMapper {
         map.rig = Some(rig.clone());
         let n = frame.len();
         let keyframe = map.add_keyframe(frame, Se3::identity());
+        self.heads.add(keyframe);
         for i in 0..n {
             if let Some(p_c) = map.keyframe(keyframe).frame.back_project(i, &rig.camera) {
                 map.add_point(p_c, keyframe, i, rig);
@@ -438,6 +446,7 @@ impl LocalMapper {
             }
         }
         let (k, created) = mapping::insert_keyframe(map, &rig, frame, pose, &points);
+        self.heads.advance(map, reference, k);
         self.recent_points.extend(created);
         if self.config.triangulate_points {
             let (created, report) = triangulation::create_points_with_neighbours(map, &rig, k);
@@ -519,10 +528,107 @@ impl LocalMapper {
 }
 
 /// The newest keyframe not culled.
+/// Robots writing to one map at most, as far as [`Heads`] keeps track.
+const MAX_HEADS: usize = 8;
+
+/// Where each robot writing to a map is: its newest keyframe. A request does not say which
+/// robot sent it, but it names the tracker's reference keyframe, near the robot: the new
+/// keyframe replaces the head that is that reference, or else the head nearest it. So after
+/// two maps are merged the robots of both keep a head each, and an optimisation of the whole
+/// map holds both robots' windows still instead of swinging the part one of them tracks in.
+#[derive(Debug, Default)]
+struct Heads(Vec<KeyFrameId>);
+
+impl Heads {
+    fn add(&mut self, k: KeyFrameId) {
+        if !self.0.contains(&k) {
+            self.0.push(k);
+        }
+        if self.0.len() > MAX_HEADS {
+            self.0.remove(0);
+        }
+    }
+
+    /// Keyframe `k` was inserted by the tracker whose reference was `reference`.
+    fn advance(&mut self, map: &Map, reference: Option<KeyFrameId>, k: KeyFrameId) {
+        let replaced = reference.and_then(|r| {
+            let at = map.world_from_keyframe(r).translation;
+            self.0.iter().position(|&h| h == r).or_else(|| {
+                self.0
+                    .iter()
+                    .enumerate()
+                    .map(|(i, &h)| (i, (map.world_from_keyframe(h).translation - at).norm()))
+                    .min_by(|a, b| a.1.total_cmp(&b.1))
+                    .map(|(i, _)| i)
+            })
+        });
+        match replaced {
+            Some(i) => self.0[i] = k,
+            None => self.add(k),
+        }
+    }
+
+    /// Every head (or the live keyframe it was culled into) and its local window.
+    fn held(&self, map: &Map) -> HashSet<KeyFrameId> {
+        let mut held = HashSet::new();
+        for &head in &self.0 {
+            let mut live = head;
+            while let Some((parent, _)) = map.keyframe(live).parent {
+                live = parent;
+            }
+            held.insert(live);
+            held.extend(mapping::local_window(map, live));
+        }
+        held
+    }
+}
+
 fn newest_live(map: &Map) -> Option<KeyFrameId> {
     map.keyframes
         .iter()
         .rev()
         .find(|k| !k.is_culled())
         .map(|k| k.id)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use nalgebra::Vector3;
+
+    /// Keyframes along x at the given positions, metres, seeing nothing.
+    fn map_at(xs: &[f64]) -> Map {
+        let rig = crate::frame::tests::rig();
+        let mut map = Map::default();
+        for &x in xs {
+            let pose = Se3::new(
+                nalgebra::UnitQuaternion::identity(),
+                Vector3::new(x, 0.0, 0.0),
+            );
+            map.add_keyframe(crate::map::tests::frame(4, &rig), pose);
+        }
+        map
+    }
+
+    #[test]
+    fn each_robot_keeps_its_head_when_their_keyframes_interleave() {
+        // Robot A walked keyframes 0–2 near x = 0; robot B's map, merged in, ended at
+        // keyframe 4 near x = 10.
+        let mut map = map_at(&[0.0, 0.5, 1.0, 9.5, 10.0, 1.5, 10.5, 2.0]);
+        let mut heads = Heads::default();
+        heads.add(KeyFrameId(2));
+        heads.add(KeyFrameId(4));
+        // A's next keyframe, tracked from its own newest; then B's, tracked from its own.
+        heads.advance(&map, Some(KeyFrameId(2)), KeyFrameId(5));
+        heads.advance(&map, Some(KeyFrameId(4)), KeyFrameId(6));
+        assert_eq!(heads.0, vec![KeyFrameId(5), KeyFrameId(6)]);
+        // A tracks from an older keyframe of its own, not a head: the nearest head is its.
+        heads.advance(&map, Some(KeyFrameId(1)), KeyFrameId(7));
+        assert_eq!(heads.0, vec![KeyFrameId(7), KeyFrameId(6)]);
+        // A head culled since is held through the keyframe it was culled into.
+        map.keyframes[6].parent = Some((KeyFrameId(4), Se3::identity()));
+        let held = heads.held(&map);
+        assert!(held.contains(&KeyFrameId(7)) && held.contains(&KeyFrameId(4)));
+        assert!(!held.contains(&KeyFrameId(6)));
+    }
 }

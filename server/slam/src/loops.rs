@@ -14,7 +14,7 @@
 //!
 //! [`PlaceIndex::candidates`]: crate::places::PlaceIndex::candidates
 
-use crate::frame::Rig;
+use crate::frame::{Frame, Rig};
 use crate::ids::{KeyFrameId, MapPointId};
 use crate::map::{LoopEdge, Map};
 use crate::matcher::{self, ProjectionLimits, SearchOptions, TH_HIGH};
@@ -41,23 +41,71 @@ const RATIO: f32 = 0.8;
 /// Looks for a place keyframe `k` revisits, outside its covisible keyframes; the loop edge if
 /// one passes every gate (see the module's comment).
 pub fn detect(map: &Map, rig: &Rig, k: KeyFrameId) -> Option<LoopEdge> {
+    let covisible: HashSet<KeyFrameId> = map.neighbours(k).iter().map(|n| n.0).collect();
+    let own: HashSet<MapPointId> = map.keyframe(k).points.iter().flatten().copied().collect();
+    let found = find_place(map, rig, k, map, |c| c == k || covisible.contains(&c), &own)?;
+    Some(LoopEdge {
+        older: found.keyframe,
+        newer: k,
+        older_from_newer: map
+            .keyframe(found.keyframe)
+            .world_from_camera
+            .inverse()
+            .compose(&found.world_from_camera),
+        inliers: found.inliers,
+    })
+}
+
+/// A place of another map that a keyframe shows ([`recognise_in`]).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct PlaceFound {
+    /// The other map's keyframe that shows the place.
+    pub keyframe: KeyFrameId,
+    /// The keyframe's camera in the other map's frame, as the other map's points put it.
+    pub world_from_camera: Se3,
+    /// The other map's points that pose explains.
+    pub inliers: usize,
+}
+
+/// Looks in `other`, another map, for the place keyframe `k` of `map` shows, through the same
+/// gates as a loop: words (the bar set by `k`'s covisible keyframes in its own map), geometry
+/// between two keyframes, then `other`'s local map there. Two maps of one building seen
+/// by one robot after a loss, or by two robots, meet this way where they share no marker.
+pub fn recognise_in(map: &Map, rig: &Rig, k: KeyFrameId, other: &Map) -> Option<PlaceFound> {
+    if other.rig.as_ref().is_some_and(|r| r != rig) {
+        return None;
+    }
+    find_place(map, rig, k, other, |_| false, &HashSet::new())
+}
+
+/// Keyframe `k` of `map` against the keyframes of `old` that `skip` leaves (which may be
+/// `map` itself), best candidate first; the first that passes every gate. `own` are points
+/// of `old` that `k` already sees (none in another map).
+fn find_place(
+    map: &Map,
+    rig: &Rig,
+    k: KeyFrameId,
+    old: &Map,
+    skip: impl Fn(KeyFrameId) -> bool,
+    own: &HashSet<MapPointId>,
+) -> Option<PlaceFound> {
     let bag = map.places.bag(k)?;
     let covisible: Vec<KeyFrameId> = map.neighbours(k).iter().map(|n| n.0).collect();
     // The bar: how alike the keyframe is to keyframes that certainly see its place.
     let bar = map.places.lowest_score(bag, &covisible)?;
-    let excluded: HashSet<KeyFrameId> = covisible.iter().copied().chain([k]).collect();
-    let candidates = map.places.candidates(
+    let candidates = old.places.candidates(
         bag,
         bar,
-        |c| excluded.contains(&c) || map.keyframe(c).is_culled(),
+        |c| skip(c) || old.keyframe(c).is_culled(),
         |c| {
-            map.neighbours(c)
+            old.neighbours(c)
                 .iter()
                 .take(NEIGHBOURS)
                 .map(|n| n.0)
                 .collect()
         },
     );
+    let same_map = std::ptr::eq(map, old);
     let keyframe = map.keyframe(k);
     let query = PlaceView {
         keypoints: &keyframe.frame.keypoints,
@@ -66,68 +114,69 @@ pub fn detect(map: &Map, rig: &Rig, k: KeyFrameId) -> Option<LoopEdge> {
     };
     for candidate in candidates.iter().take(VERIFIED_CANDIDATES) {
         let c = candidate.keyframe;
-        let old = map.keyframe(c);
-        let Some(view_bag) = map.places.bag(c) else {
+        let seen_before = old.keyframe(c);
+        let Some(view_bag) = old.places.bag(c) else {
             continue;
         };
         let view = PlaceView {
-            keypoints: &old.frame.keypoints,
-            descriptors: &old.frame.descriptors,
+            keypoints: &seen_before.frame.keypoints,
+            descriptors: &seen_before.frame.descriptors,
             bag: view_bag,
         };
         let Some(verified) = places::verify(query, view, rig, places::MIN_INLIERS) else {
             continue;
         };
-        let guess = old
+        let guess = seen_before
             .world_from_camera
             .compose(&verified.query_from_candidate.inverse());
-        let Some((world_from_k, inliers)) = refine_on_local_map(map, rig, k, c, &guess) else {
+        let local: Vec<KeyFrameId> = std::iter::once(c)
+            .chain(old.neighbours(c).iter().take(NEIGHBOURS).map(|n| n.0))
+            .filter(|&n| !(same_map && n == k))
+            .collect();
+        let Some((world_from_camera, inliers)) =
+            refine_on_local_map(old, rig, &keyframe.frame, own, &local, &guess)
+        else {
             tracing::debug!(
                 keyframe = k.0,
                 candidate = c.0,
                 verified = verified.inliers,
-                "loop candidate verified but not confirmed by its local map"
+                "place candidate verified but not confirmed by its local map"
             );
             continue;
         };
-        return Some(LoopEdge {
-            older: c,
-            newer: k,
-            older_from_newer: old.world_from_camera.inverse().compose(&world_from_k),
+        return Some(PlaceFound {
+            keyframe: c,
+            world_from_camera,
             inliers,
         });
     }
     None
 }
 
-/// Keyframe `k`'s pose on the local map of `c` (its points and its neighbours'), from
-/// `guess`: the old points projected, matched in `k`'s frame, and the pose optimised on them.
-/// The pose and the inliers when at least [`MIN_LOCAL_MAP_INLIERS`].
+/// A frame's pose on the local map of `old` made of `local` keyframes' points (less `own`, the
+/// points the frame already sees), from `guess`: the points projected, matched in the frame,
+/// and the pose optimised on them. The pose and the inliers when at least
+/// [`MIN_LOCAL_MAP_INLIERS`].
 fn refine_on_local_map(
-    map: &Map,
+    old: &Map,
     rig: &Rig,
-    k: KeyFrameId,
-    c: KeyFrameId,
+    frame: &Frame,
+    own: &HashSet<MapPointId>,
+    local: &[KeyFrameId],
     guess: &Se3,
 ) -> Option<(Se3, usize)> {
-    let frame = &map.keyframe(k).frame;
-    let own: HashSet<MapPointId> = map.keyframe(k).points.iter().flatten().copied().collect();
-    let local: Vec<KeyFrameId> = std::iter::once(c)
-        .chain(map.neighbours(c).iter().take(NEIGHBOURS).map(|n| n.0))
-        .filter(|&n| n != k)
-        .collect();
     let camera_from_world = guess.inverse();
     let centre = guess.translation;
     let limits = ProjectionLimits::default();
     let mut seen: HashSet<MapPointId> = HashSet::new();
     let mut candidates = Vec::new();
     let mut candidate_points = Vec::new();
-    for &n in &local {
-        for &p in map.keyframe(n).points.iter().flatten() {
+    for &n in local {
+        for &p in old.keyframe(n).points.iter().flatten() {
             if own.contains(&p) || !seen.insert(p) {
                 continue;
             }
-            let point = map.point(p);
+            let point = old.point(p);
             if point.bad {
                 continue;
             }
@@ -152,7 +201,7 @@ fn refine_on_local_map(
     }
     let observations: Vec<PoseObservation> = found
         .iter()
-        .map(|&(c, i)| frame.keypoints[i].observation(rig, map.point(candidate_points[c]).position))
+        .map(|&(c, i)| frame.keypoints[i].observation(rig, old.point(candidate_points[c]).position))
         .collect();
     let result = optimise_pose(
         guess,

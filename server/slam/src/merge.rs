@@ -2,14 +2,17 @@
 //! maps a part of the building in a map of its own; once two maps hold the same markers they
 //! are one building seen twice, and one map is moved into the other's frame and joined to it.
 //!
-//! Markers are the place recognition here (UcoSLAM's idea): ids are unique in a building, so a
+//! Markers are the first place recognition (UcoSLAM's idea): ids are unique in a building, so a
 //! marker mapped in both maps names one place. One id is not proof (an id printed twice, a
 //! misread one), so the maps are aligned only when at least [`MIN_SHARED_MARKERS`] shared
 //! markers agree on one rigid transform, or one marker and the points around it, found again
-//! in the other map where the marker puts them. The joined map keeps both maps' keyframes,
-//! points and sightings; a marker in both is one landmark with the sightings of both, and a
-//! point found in both is one point, so the whole-map optimisation holds the two parts
-//! together where they meet.
+//! in the other map where the marker puts them. Where the maps share no marker, a place both
+//! show, recognised by visual words ([`crate::loops::recognise_in`]), is confirmed the same way
+//! by the points around it ([`align_by_place`]), and markers may still refuse it. The joined
+//! map keeps both maps' keyframes, points and sightings; a marker in both is one landmark with
+//! the sightings of both, a point found in both is one point, and the seam is an edge between
+//! a keyframe of each part, so the whole-map optimisation holds the two parts together where
+//! they meet.
 
 use crate::frame::Rig;
 use crate::map::{KeyFrameId, LoopEdge, Map, MapMarker, MapPointId};
@@ -61,6 +64,59 @@ pub struct Alignment {
     /// Those points, each with the target keypoint it was found as: [`absorb`] makes each pair
     /// one point, which ties the two maps' keyframes together where they meet.
     pub seam: Vec<SeamMatch>,
+    /// The keyframes that showed one place, when visual words recognised it (none: markers).
+    pub place: Option<Place>,
+}
+
+/// What says two maps hold one place.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum Evidence {
+    /// The markers both hold ([`align_by_markers`]).
+    Markers,
+    /// A keyframe of one that shows a place of the other ([`align_by_place`]).
+    Place(Place),
+}
+
+/// A place both maps show: a keyframe of each, and the transform the source keyframe's pose
+/// against the target's local map gives ([`crate::loops::recognise_in`]).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Place {
+    pub target_keyframe: KeyFrameId,
+    pub source_keyframe: KeyFrameId,
+    pub target_from_source: Se3,
+}
+
+/// Keyframes that must recognise one place of another map, each with a transform that agrees
+/// with the one before ([`places_agree`]), before the maps are merged by it (ORB-SLAM3 asks
+/// three). A building's repeated textures and shapes can fool the words and one keyframe's
+/// geometry; a run of keyframes, each seeing the place from another viewpoint, rarely is.
+pub const PLACE_AGREEMENTS: usize = 3;
+
+/// Keyframes in a row that may miss a place seen before it is forgotten.
+pub const PLACE_MISSES: usize = 2;
+
+/// Two transforms between the same two maps agree within these: each comes from a keyframe's
+/// pose on the other map's points (centimetres, tenths of a degree off), and the map drifts by
+/// millimetres between keyframes; a place that only looks alike gives transforms metres and
+/// tens of degrees apart.
+pub const PLACE_AGREEMENT_M: f64 = MAX_POINT_ERROR_M;
+pub const PLACE_AGREEMENT_RAD: f64 = 0.05;
+
+/// Whether two estimates of one map's frame in another's agree ([`PLACE_AGREEMENT_M`],
+/// [`PLACE_AGREEMENT_RAD`]) where they were made: they put `at` (a point of the place) within
+/// the distance of each other. At the map's origin, metres away, a tenth of a degree would
+/// already move it by centimetres.
+pub fn places_agree(a: &Se3, b: &Se3, at: &Vector3<f64>) -> bool {
+    (a.transform_point(at) - b.transform_point(at)).norm() <= PLACE_AGREEMENT_M
+        && a.rotation.angle_to(&b.rotation) <= PLACE_AGREEMENT_RAD
+}
+
+/// Aligns `source` to `target` by what `evidence` names.
+pub fn align(target: &Map, source: &Map, evidence: &Evidence) -> Result<Alignment, NoAlignment> {
+    match evidence {
+        Evidence::Markers => align_by_markers(target, source),
+        Evidence::Place(place) => align_by_place(target, source, place),
+    }
 }
 
 /// A source point found as a keypoint of a target keyframe.
@@ -98,6 +154,26 @@ pub enum NoAlignment {
         shared: Vec<i32>,
         agreeing: Vec<i32>,
     },
+    #[error("keyframe {} of the place recognised and its neighbours are no longer in its map", .0.0)]
+    PlaceGone(KeyFrameId),
+    #[error(
+        "the place recognised is confirmed by {point_inliers} points around it \
+         ({MIN_POINT_INLIERS} are needed)"
+    )]
+    PlaceUnconfirmed { point_inliers: usize },
+    #[error(
+        "the place recognised puts source marker {source_marker} on target marker \
+         {target_marker} ({distance_m:.2} m apart): two places that look alike"
+    )]
+    MarkerClash {
+        target_marker: i32,
+        source_marker: i32,
+        distance_m: f64,
+    },
+    #[error(
+        "the place recognised puts shared marker {marker} at two places {distance_m:.2} m apart"
+    )]
+    MarkerElsewhere { marker: i32, distance_m: f64 },
 }
 
 /// What [`absorb`] did: where the source's keyframes and points now are.
@@ -306,8 +382,116 @@ pub fn align_by_markers(target: &Map, source: &Map) -> Result<Alignment, NoAlign
         } else {
             Vec::new()
         },
+        place: None,
     })
 }
+
+/// Aligns `source` to `target` at a place both show, recognised by visual words and confirmed
+/// on the target's local map ([`crate::loops::recognise_in`]): the points the source keyframe
+/// and its neighbours see are looked for in the target keyframe and its neighbours, in a
+/// narrow window where the place's transform puts them; the transform is refitted on those
+/// within [`MAX_POINT_ERROR_M`], and [`MIN_POINT_INLIERS`] must confirm it.
+///
+/// Markers outrank words: a shared marker the transform puts elsewhere, or two markers of
+/// different ids it puts at one spot (closer than a marker's side: two printed squares cannot
+/// overlap), say the place is another that looks alike, and the maps are not aligned.
+pub fn align_by_place(target: &Map, source: &Map, place: &Place) -> Result<Alignment, NoAlignment> {
+    let (Some(rig), Some(source_rig)) = (&target.rig, &source.rig) else {
+        return Err(NoAlignment::OtherCamera);
+    };
+    if rig != source_rig {
+        return Err(NoAlignment::OtherCamera);
+    }
+    // The place's keyframes and their best covisible ones; a place keyframe culled since it
+    // was recognised leaves its neighbours, which saw the same place.
+    let around = |map: &Map, k: KeyFrameId| -> Result<Vec<KeyFrameId>, NoAlignment> {
+        if map.keyframes.get(k.0 as usize).is_none() {
+            return Err(NoAlignment::PlaceGone(k));
+        }
+        let live: Vec<KeyFrameId> = std::iter::once(k)
+            .chain(map.neighbours(k).iter().take(PLACE_NEIGHBOURS).map(|n| n.0))
+            .filter(|&n| !map.keyframe(n).is_culled())
+            .collect();
+        if live.is_empty() {
+            return Err(NoAlignment::PlaceGone(k));
+        }
+        Ok(live)
+    };
+    let mut points: Vec<usize> = around(source, place.source_keyframe)?
+        .into_iter()
+        .flat_map(|k| source.keyframe(k).points.iter().flatten())
+        .filter(|&&p| !source.point(p).bad)
+        .map(|p| p.0 as usize)
+        .collect();
+    points.sort_unstable();
+    points.dedup();
+    let keyframes = around(target, place.target_keyframe)?;
+    let narrow = {
+        let mut taken = vec![false; source.points.len()];
+        let mut pairs = Vec::new();
+        pairs_in_keyframes(
+            (target, source, rig),
+            &points,
+            &keyframes,
+            &place.target_from_source,
+            POINT_WINDOW_PX,
+            &mut taken,
+            &mut pairs,
+        );
+        pairs
+    };
+    let (transform, seam) = refit_within(&narrow, &place.target_from_source);
+    if seam.len() < MIN_POINT_INLIERS {
+        return Err(NoAlignment::PlaceUnconfirmed {
+            point_inliers: seam.len(),
+        });
+    }
+    let mut markers = Vec::new();
+    let mut turned = Vec::new();
+    let mut squared = 0.0;
+    for (t, s) in shared_markers(target, source) {
+        let (rms, angle) = disagreement(t, s, &transform);
+        let distance = centre_distance(t, s, &transform);
+        if distance > MAX_CORNER_RMS_M {
+            return Err(NoAlignment::MarkerElsewhere {
+                marker: t.id,
+                distance_m: distance,
+            });
+        }
+        markers.push(t.id);
+        squared += distance * distance;
+        if !agrees((rms, angle)) {
+            turned.push(t.id);
+        }
+    }
+    for s in source.markers.values() {
+        let at = transform.transform_point(&s.world_from_marker.translation);
+        for t in target.markers.values().filter(|t| t.id != s.id) {
+            let distance = (t.world_from_marker.translation - at).norm();
+            if distance < t.side_m.max(s.side_m) {
+                return Err(NoAlignment::MarkerClash {
+                    target_marker: t.id,
+                    source_marker: s.id,
+                    distance_m: distance,
+                });
+            }
+        }
+    }
+    Ok(Alignment {
+        target_from_source: transform,
+        marker_rms_m: (squared / markers.len().max(1) as f64).sqrt(),
+        markers,
+        turned,
+        disagreeing: Vec::new(),
+        point_inliers: seam.len(),
+        seam,
+        place: Some(*place),
+    })
+}
+
+/// Keyframes around a recognised place, on each side, whose points take part (the place's
+/// keyframe and its best covisible ones, as the local map it was confirmed on).
+const PLACE_NEIGHBOURS: usize = 10;
 
 /// A transform from the source's points around the markers `near`, looked for in a wide
 /// window where `transform` puts them in the target's keyframes that saw those markers: a
@@ -354,8 +538,20 @@ fn confirm(
     fit: &Se3,
 ) -> (Se3, Vec<SeamMatch>) {
     let narrow = point_pairs(target, source, rig, near, fit, POINT_WINDOW_PX);
+    let (refit, confirming) = refit_within(&narrow, fit);
+    tracing::debug!(
+        narrow = narrow.len(),
+        confirming = confirming.len(),
+        "points of the source found in the target"
+    );
+    (refit, confirming)
+}
+
+/// The pairs within [`MAX_POINT_ERROR_M`] of where `fit` puts them, the transform refitted on
+/// them, and the pairs within that distance of where the refit puts them.
+fn refit_within(pairs: &[SeamMatch], fit: &Se3) -> (Se3, Vec<SeamMatch>) {
     let within = |t: &Se3| -> Vec<SeamMatch> {
-        narrow
+        pairs
             .iter()
             .filter(|m| {
                 (m.target_position - t.transform_point(&m.source_position)).norm()
@@ -366,13 +562,7 @@ fn confirm(
     };
     let kept = within(fit);
     let refit = rigid_fit(&kept.iter().map(SeamMatch::pair).collect::<Vec<_>>()).unwrap_or(*fit);
-    let confirming = within(&refit);
-    tracing::debug!(
-        narrow = narrow.len(),
-        confirming = confirming.len(),
-        "points of the source found in the target"
-    );
-    (refit, confirming)
+    (refit, within(&refit))
 }
 
 /// Source points within this distance of a marker are looked for, metres (a room's wall).
@@ -423,67 +613,89 @@ fn point_pairs(
             .collect();
         keyframes.sort_unstable();
         keyframes.dedup();
-        for &k in keyframes.iter().rev() {
-            let keyframe = target.keyframe(k);
-            let camera_from_source = keyframe.world_from_camera.inverse().compose(transform);
-            let camera_centre = keyframe.world_from_camera.translation;
-            let mut candidates = Vec::new();
-            let mut which = Vec::new();
-            for &i in &around {
-                if taken_points[i] {
-                    continue;
-                }
-                let point = &source.points[i];
-                let Some((p_c, u, v)) =
-                    crate::matcher::project(rig, &camera_from_source, &point.position)
-                else {
-                    continue;
-                };
-                let at = transform.transform_point(&point.position);
-                let distance = (at - camera_centre).norm();
-                if distance < point.min_distance * 0.8 || distance > point.max_distance * 1.2 {
-                    continue;
-                }
-                let level = rig.predict_level(point.max_distance, distance);
-                candidates.push(Projected {
-                    u,
-                    v,
-                    right_u: u - rig.bf / p_c.z,
-                    min_level: level.saturating_sub(1),
-                    max_level: (level + 1).min(rig.levels - 1),
-                    radius: window_px * rig.scale(level),
-                    descriptor: point.descriptor,
-                    angle: None,
-                });
-                which.push(i);
-            }
-            let taken = vec![false; keyframe.frame.len()];
-            // Windows bound the search, so ORB-SLAM's threshold for projection searches applies;
-            // other robots' views of a place differ more than one robot's.
-            let options = SearchOptions {
-                max_distance: TH_HIGH,
-                ratio: Some(0.8),
-                check_orientation: false,
-            };
-            for (c, keypoint) in
-                search_by_projection(&keyframe.frame, &candidates, &taken, &options)
-            {
-                let Some(in_camera) = keyframe.frame.back_project(keypoint, &rig.camera) else {
-                    continue;
-                };
-                let i = which[c];
-                taken_points[i] = true;
-                pairs.push(SeamMatch {
-                    keyframe: k,
-                    keypoint,
-                    source_point: MapPointId(i as u32),
-                    target_position: keyframe.world_from_camera.transform_point(&in_camera),
-                    source_position: source.points[i].position,
-                });
-            }
-        }
+        keyframes.reverse();
+        pairs_in_keyframes(
+            (target, source, rig),
+            &around,
+            &keyframes,
+            transform,
+            window_px,
+            &mut taken_points,
+            &mut pairs,
+        );
     }
     pairs
+}
+
+/// The source's points `around` (indices), moved by `transform` into each of the target's
+/// `keyframes` in turn and matched by descriptor to keypoints with depth there
+/// (back-projected), each point once (`taken_points`); the pairs are added to `pairs`.
+fn pairs_in_keyframes(
+    (target, source, rig): (&Map, &Map, &Rig),
+    around: &[usize],
+    keyframes: &[KeyFrameId],
+    transform: &Se3,
+    window_px: f64,
+    taken_points: &mut [bool],
+    pairs: &mut Vec<SeamMatch>,
+) {
+    for &k in keyframes {
+        let keyframe = target.keyframe(k);
+        let camera_from_source = keyframe.world_from_camera.inverse().compose(transform);
+        let camera_centre = keyframe.world_from_camera.translation;
+        let mut candidates = Vec::new();
+        let mut which = Vec::new();
+        for &i in around {
+            if taken_points[i] {
+                continue;
+            }
+            let point = &source.points[i];
+            let Some((p_c, u, v)) =
+                crate::matcher::project(rig, &camera_from_source, &point.position)
+            else {
+                continue;
+            };
+            let at = transform.transform_point(&point.position);
+            let distance = (at - camera_centre).norm();
+            if distance < point.min_distance * 0.8 || distance > point.max_distance * 1.2 {
+                continue;
+            }
+            let level = rig.predict_level(point.max_distance, distance);
+            candidates.push(Projected {
+                u,
+                v,
+                right_u: u - rig.bf / p_c.z,
+                min_level: level.saturating_sub(1),
+                max_level: (level + 1).min(rig.levels - 1),
+                radius: window_px * rig.scale(level),
+                descriptor: point.descriptor,
+                angle: None,
+            });
+            which.push(i);
+        }
+        let taken = vec![false; keyframe.frame.len()];
+        // Windows bound the search, so ORB-SLAM's threshold for projection searches applies;
+        // other robots' views of a place differ more than one robot's.
+        let options = SearchOptions {
+            max_distance: TH_HIGH,
+            ratio: Some(0.8),
+            check_orientation: false,
+        };
+        for (c, keypoint) in search_by_projection(&keyframe.frame, &candidates, &taken, &options) {
+            let Some(in_camera) = keyframe.frame.back_project(keypoint, &rig.camera) else {
+                continue;
+            };
+            let i = which[c];
+            taken_points[i] = true;
+            pairs.push(SeamMatch {
+                keyframe: k,
+                keypoint,
+                source_point: MapPointId(i as u32),
+                target_position: keyframe.world_from_camera.transform_point(&in_camera),
+                source_position: source.points[i].position,
+            });
+        }
+    }
 }
 
 /// Moves every keyframe, point and marker of `source` into `target`, in the target's frame by
@@ -593,7 +805,46 @@ pub fn absorb(target: &mut Map, source: &Map, alignment: &Alignment) -> Absorbed
     for k in touched {
         target.refresh_neighbours(k);
     }
+    if let Some(edge) = seam_edge(target, source, alignment, &absorbed) {
+        target.loop_edges.push(edge);
+    }
     absorbed
+}
+
+/// The seam as one edge of the whole-map optimisation's graph: the pair of keyframes, one of
+/// each part, that share the most of the seam's points, at the relative pose the alignment
+/// gave them. Fused points alone join the parts only where a pair of keyframes shares enough
+/// of them to enter the essential graph; short of that, the parts would hang together by the
+/// markers they share, and a single marker lets one part turn about it.
+fn seam_edge(
+    target: &Map,
+    source: &Map,
+    alignment: &Alignment,
+    absorbed: &Absorbed,
+) -> Option<LoopEdge> {
+    let mut shared: std::collections::BTreeMap<(KeyFrameId, KeyFrameId), usize> =
+        std::collections::BTreeMap::new();
+    for m in &alignment.seam {
+        for &(k, _) in &source.point(m.source_point).observations {
+            *shared
+                .entry((m.keyframe, absorbed.keyframe(k)))
+                .or_default() += 1;
+        }
+    }
+    let (&(older, newer), &inliers) = shared.iter().max_by_key(|(_, &n)| n)?;
+    if target.keyframe(older).is_culled() || target.keyframe(newer).is_culled() {
+        return None;
+    }
+    Some(LoopEdge {
+        older,
+        newer,
+        older_from_newer: target
+            .keyframe(older)
+            .world_from_camera
+            .inverse()
+            .compose(&target.keyframe(newer).world_from_camera),
+        inliers,
+    })
 }
 
 #[cfg(test)]
@@ -878,6 +1129,16 @@ mod tests {
             .find(|(k, _)| *k == theirs)
             .map_or(0, |(_, n)| *n);
         assert_eq!(shared, alignment.point_inliers);
+        // The seam is an edge of the whole-map graph, at the relative pose the two keyframes
+        // truly have: the source's camera stands `beside` the target's.
+        let seam = merged.loop_edges.last().expect("a seam edge");
+        assert_eq!((seam.older, seam.newer), (KeyFrameId(0), theirs));
+        assert_eq!(seam.inliers, alignment.point_inliers);
+        let error = here
+            .inverse()
+            .compose(&beside)
+            .local(&seam.older_from_newer);
+        assert!(error.norm() < 1e-3, "{error}");
         assert_eq!(
             merged.live_points(),
             target.live_points() + source.live_points() - shared
@@ -932,5 +1193,92 @@ mod tests {
         );
         let error = alignment.target_from_source.local(&transform());
         assert!(error.norm() < 1e-6, "{error}");
+    }
+
+    #[test]
+    fn a_place_seen_in_both_maps_aligns_them_unless_a_marker_says_otherwise() {
+        let beside = Se3::new(
+            UnitQuaternion::from_euler_angles(0.0, 0.1, 0.0),
+            Vector3::new(0.3, 0.0, 0.1),
+        );
+        let target = wall_map(&Se3::identity(), &Se3::identity(), 1000);
+        let source = wall_map(&beside, &transform(), 1000);
+        // The transform as the source keyframe's pose on the target's local map gives it:
+        // a centimetre and a few tenths of a degree off.
+        let rough = transform().compose(&Se3::new(
+            UnitQuaternion::from_euler_angles(0.003, -0.004, 0.0),
+            Vector3::new(0.01, -0.005, 0.005),
+        ));
+        let place = Place {
+            target_keyframe: KeyFrameId(0),
+            source_keyframe: KeyFrameId(0),
+            target_from_source: rough,
+        };
+        let alignment = align_by_place(&target, &source, &place).unwrap();
+        assert_eq!(alignment.place, Some(place));
+        assert_eq!(alignment.markers, vec![10]);
+        assert!(alignment.seam.len() >= MIN_POINT_INLIERS, "{alignment:?}");
+        let error = alignment.target_from_source.local(&transform());
+        assert!(error.norm() < 1e-3, "{error}");
+
+        // The same wall with another texture: the place was not this one.
+        let elsewhere = wall_map(&beside, &transform(), 5000);
+        assert!(matches!(
+            align_by_place(&target, &elsewhere, &place),
+            Err(NoAlignment::PlaceUnconfirmed { .. })
+        ));
+        // A room that looks the same but is labelled by another marker.
+        let mut twin = source.clone();
+        let mut twelve = twin.markers.remove(&10).unwrap();
+        twelve.id = 12;
+        twin.markers.insert(12, twelve);
+        assert!(matches!(
+            align_by_place(&target, &twin, &place),
+            Err(NoAlignment::MarkerClash {
+                target_marker: 10,
+                source_marker: 12,
+                ..
+            })
+        ));
+        // The shared marker mapped a metre away in the source: one of the two is wrong, and
+        // words do not outvote a marker.
+        let mut moved = source.clone();
+        let marker = moved.markers.get_mut(&10).unwrap();
+        marker.world_from_marker.translation.x += 1.0;
+        assert!(matches!(
+            align_by_place(&target, &moved, &place),
+            Err(NoAlignment::MarkerElsewhere { marker: 10, .. })
+        ));
+    }
+
+    #[test]
+    fn places_agree_where_they_were_seen_not_at_the_origin() {
+        let place = Vector3::new(12.0, 0.0, 8.0);
+        let a = transform();
+        // A tenth of a degree about the map's origin, 14 m from the place: 2.5 cm there.
+        let turned = Se3::new(
+            a.rotation * UnitQuaternion::from_euler_angles(0.0, 0.0018, 0.0),
+            a.translation,
+        );
+        assert!(places_agree(&a, &turned, &place));
+        // Turned 1.1° about the place itself, and 5 cm on top: the two transforms' translations
+        // (the origins) are 30 cm apart, the place 5 cm.
+        let at = a.transform_point(&place);
+        let about_place = |angle: f64, shift: f64| {
+            let spin = Se3::new(
+                UnitQuaternion::from_euler_angles(0.0, angle, 0.0),
+                Vector3::zeros(),
+            );
+            let to = Se3::new(
+                UnitQuaternion::identity(),
+                at + Vector3::new(shift, 0.0, 0.0),
+            );
+            let from = Se3::new(UnitQuaternion::identity(), -at);
+            to.compose(&spin).compose(&from).compose(&a)
+        };
+        assert!(places_agree(&a, &about_place(0.02, 0.05), &place));
+        // A place that only looks alike: a metre away, or turned 10°.
+        assert!(!places_agree(&a, &about_place(0.0, 1.0), &place));
+        assert!(!places_agree(&a, &about_place(0.17, 0.0), &place));
     }
 }
