@@ -16,6 +16,8 @@
 //! ```
 //!
 //! A room is bounded by its four walls; a corridor by its two long walls (its ends are open).
+//! A space may copy the look of another of the same kind and size (`"looks_like": "Lab"`):
+//! the same textures and colours, told apart by their markers only.
 //! A door's `at` is the middle of its opening, on the wall line the two spaces share.
 
 use nalgebra::Vector3;
@@ -74,6 +76,11 @@ pub struct Space {
     pub min: [f64; 2],
     /// Corner with the largest x and y, metres.
     pub max: [f64; 2],
+    /// Another space, of the same kind and size, whose walls, floor and ceiling this one copies
+    /// (textures and colours): two rooms furnished alike, which only their markers tell apart.
+    /// For testing that place recognition is not fooled by a look-alike.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub looks_like: Option<String>,
 }
 
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -132,6 +139,10 @@ pub enum PlanError {
         "door {door:?}: its top, with room for a marker above it, must be below the wall height"
     )]
     DoorHeight { door: String },
+    #[error(
+        "space {space:?} looks like {like:?}, which is not another space of the same kind and size"
+    )]
+    LooksLike { space: String, like: String },
 }
 
 impl FloorPlan {
@@ -192,6 +203,23 @@ impl FloorPlan {
                         b: s.name.clone(),
                     });
                 }
+            }
+        }
+        for s in &self.spaces {
+            let Some(like) = &s.looks_like else {
+                continue;
+            };
+            let same = self.space(like).is_some_and(|t| {
+                let size = |s: &Space, k: usize| s.max[k] - s.min[k];
+                t.name != s.name
+                    && t.kind == s.kind
+                    && (0..2).all(|k| (size(s, k) - size(t, k)).abs() < EPS)
+            });
+            if !same {
+                return Err(PlanError::LooksLike {
+                    space: s.name.clone(),
+                    like: like.clone(),
+                });
             }
         }
         let dictionary = crate::aruco::Dictionary::by_name(&self.markers.dictionary)

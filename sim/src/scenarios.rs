@@ -12,6 +12,7 @@ fn space(name: &str, kind: SpaceKind, min: [f64; 2], max: [f64; 2]) -> Space {
         kind,
         min,
         max,
+        looks_like: None,
     }
 }
 

@@ -127,6 +127,8 @@ impl Surface {
     }
 }
 
+/// Surfaces each space drafts: four sides, a floor and a ceiling.
+const SURFACES_PER_SPACE: usize = 6;
 /// Texel sides: finer on walls, which the camera sees closest and where markers hang.
 const WALL_TEXEL: f64 = 0.005;
 const FLOOR_TEXEL: f64 = 0.01;
@@ -175,9 +177,23 @@ impl Scene {
             surface: Surface,
             pattern: Pattern,
             texel: f64,
+            /// Which surface's texture this one draws (its own index, or the same surface of
+            /// the space it looks like).
+            look: usize,
         }
         let mut drafts = Vec::new();
         for (si, space) in plan.spaces.iter().enumerate() {
+            // Each space drafts its four sides, then its floor and its ceiling.
+            let look_of = space
+                .looks_like
+                .as_ref()
+                .and_then(|name| plan.spaces.iter().position(|s| &s.name == name))
+                .unwrap_or(si);
+            let mut next_look = SURFACES_PER_SPACE * look_of;
+            let mut look = || {
+                next_look += 1;
+                next_look - 1
+            };
             for side in all_sides(plan, si) {
                 let holes = plan
                     .doors
@@ -205,11 +221,12 @@ impl Scene {
                         v: [0.0, height],
                         holes,
                         texture: placeholder(),
-                        tint: WALL_TINTS[(si + side.axis) % WALL_TINTS.len()],
+                        tint: WALL_TINTS[(look_of + side.axis) % WALL_TINTS.len()],
                         markers: Vec::new(),
                     },
                     pattern: Pattern::Wall,
                     texel: WALL_TEXEL,
+                    look: look(),
                 });
             }
             for (at, facing, pattern, tint) in [
@@ -233,6 +250,7 @@ impl Scene {
                     },
                     pattern,
                     texel: FLOOR_TEXEL,
+                    look: look(),
                 });
             }
         }
@@ -268,7 +286,7 @@ impl Scene {
                     scope.spawn(move || {
                         (t..drafts.len())
                             .step_by(threads)
-                            .map(|i| (i, texture_of(&drafts[i], lamps, seed, i)))
+                            .map(|i| (i, texture_of(&drafts[i], lamps, seed, drafts[i].look)))
                             .collect::<Vec<_>>()
                     })
                 })

@@ -236,6 +236,7 @@ fn broken_plans_are_refused_with_their_reason() {
             kind: SpaceKind::Room,
             min: [30.0 + 5.0 * f64::from(i), 0.0],
             max: [34.0 + 5.0 * f64::from(i), 4.0],
+            looks_like: None,
         }));
     assert_eq!(
         plan.validate(),

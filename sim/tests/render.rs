@@ -366,3 +366,45 @@ fn the_detector_finds_the_markers_in_view_and_nothing_else() {
         );
     }
 }
+
+/// Two rooms side by side, the second (`east` its east wall's x) copying the first's look
+/// when `alike`.
+fn twin_rooms(alike: bool, east: f64) -> Result<vsgraphs_sim::FloorPlan, vsgraphs_sim::PlanError> {
+    let looks_like = if alike { r#", "looks_like": "A""# } else { "" };
+    vsgraphs_sim::FloorPlan::from_json(&format!(
+        r#"{{"name": "twins", "spaces": [
+            {{"name": "A", "kind": "room", "min": [0, 0], "max": [4, 4]}},
+            {{"name": "B", "kind": "room", "min": [6, 0], "max": [{east}, 4]{looks_like}}}
+        ]}}"#
+    ))
+}
+
+/// Share of pixels of the same grey level in the same view of room A and of room B (6 m
+/// east): a corner of the north wall and the ceiling, away from the markers. The walls'
+/// textures are of low contrast, so only equal pixels tell a copy from another texture.
+fn alike_share(plan: &vsgraphs_sim::FloorPlan) -> f64 {
+    let building = Building::from_plan(plan).unwrap();
+    let renderer = Renderer::new(plan, &building, RenderOptions::default(), 1);
+    let view = |dx: f64| {
+        let eye = Vector3::new(1.5 + dx, 2.0, 1.5);
+        let pose = looking_at(eye, Vector3::new(0.3 + dx, 4.0, 2.2));
+        renderer.render(0, 0.0, &[pose]).grey()
+    };
+    let (a, b) = (view(0.0), view(6.0));
+    let same = a.iter().zip(&b).filter(|(p, q)| p == q).count();
+    same as f64 / a.len() as f64
+}
+
+#[test]
+fn a_room_that_looks_like_another_is_drawn_alike() {
+    let alike = alike_share(&twin_rooms(true, 10.0).unwrap());
+    let unlike = alike_share(&twin_rooms(false, 10.0).unwrap());
+    eprintln!("pixels alike: {alike:.3} copied, {unlike:.3} not");
+    assert!(alike > 0.95, "{alike}");
+    assert!(unlike < 0.3, "{unlike}");
+    // Only a space of the same kind and size can be copied.
+    assert!(matches!(
+        twin_rooms(true, 11.0),
+        Err(vsgraphs_sim::PlanError::LooksLike { .. })
+    ));
+}

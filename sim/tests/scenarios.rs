@@ -257,6 +257,7 @@ fn broken_routes_are_refused_with_their_reason() {
         kind: vsgraphs_sim::plan::SpaceKind::Room,
         min: [20.0, 0.0],
         max: [23.0, 3.0],
+        looks_like: None,
     });
     assert!(matches!(
         walk(

@@ -4,7 +4,9 @@
 //! second robot maps a marker the first mapped, the maps are merged while it walks, it goes on
 //! mapping in the merged map, and that map holds the whole building, both trajectories in one
 //! frame. Without markers in the maps, a robot restarted in a new session meets its old map
-//! where a keyframe of the new one shows a place of the old, found by visual words.
+//! where a keyframe of the new one shows a place of the old, found by visual words. A room
+//! drawn exactly as another (`lookalike_wings.json`) is recognised by words but refused by its
+//! markers.
 
 use vsgraphs_eval::scenario::{self, ScenarioOptions};
 use vsgraphs_eval::semantics::SemanticReport;
@@ -126,4 +128,39 @@ fn a_restarted_robot_merges_by_a_place_it_recognises_without_markers() {
     // would put the restarted part decimetres away.
     eprintln!("ATE {:.4} m", ate.stats.rmse);
     assert!(ate.stats.rmse < 0.02, "{}", ate.stats.rmse);
+}
+
+#[test]
+fn a_room_that_looks_like_another_is_refused_by_its_markers() {
+    // two_wings with the east room drawn exactly as the west room (`looks_like`): the second
+    // robot's keyframes in it recognise the first robot's room by words and geometry alike,
+    // but the place would put its markers on the first room's markers of other ids.
+    let path = concat!(env!("CARGO_MANIFEST_DIR"), "/data/lookalike_wings.json");
+    let scenario = Scenario::load(path).unwrap();
+    let run = scenario::run_together(
+        &PipelineConfig::default(),
+        &scenario,
+        &ScenarioOptions::default(),
+        |_, _, _| {},
+    )
+    .unwrap();
+    for m in &run.merges {
+        eprintln!("merge: {m:?}");
+    }
+    for r in &run.refused_places {
+        eprintln!("refused: {r:?}");
+    }
+    assert!(
+        run.refused_places
+            .iter()
+            .any(|(_, _, why)| why.contains("look alike")),
+        "the look-alike room was not recognised, or not refused: {:?}",
+        run.refused_places
+    );
+    // The maps still become one, where they truly meet (the corridor's shared marker), and
+    // no merge is wrong.
+    assert_eq!(run.maps, 1, "{:?}", run.not_merged);
+    for merge in &run.merges {
+        assert!(!merge.wrong, "{merge:?}");
+    }
 }

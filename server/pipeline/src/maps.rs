@@ -12,7 +12,7 @@
 
 use crate::model;
 use std::any::Any;
-use std::collections::{BTreeMap, BTreeSet};
+use std::collections::{BTreeMap, BTreeSet, VecDeque};
 use std::panic::{catch_unwind, AssertUnwindSafe};
 use std::sync::atomic::{AtomicBool, AtomicU32, Ordering};
 use std::sync::{mpsc, Arc, Mutex, MutexGuard, RwLock};
@@ -53,8 +53,8 @@ struct Inner {
     /// Pairs of maps tried, with how many markers they shared then: a pair is tried again only
     /// once it shares more.
     tried: Mutex<BTreeMap<(MapId, MapId), usize>>,
-    /// Places recognised in two maps but refused.
-    refused: Mutex<Vec<RefusedPlace>>,
+    /// Places recognised in two maps but refused, the newest [`KEPT_REFUSALS`].
+    refused: Mutex<VecDeque<RefusedPlace>>,
     /// Places of another map a map's keyframes recognised, by (map, other map), until enough
     /// keyframes in a row agree.
     places_seen: Mutex<BTreeMap<(MapId, MapId), Sightings>>,
@@ -224,6 +224,10 @@ enum Failure {
     Error(TrackError),
     Panic(Box<dyn Any + Send>),
 }
+
+/// Refused places a service keeps for inspection: enough to show what fooled the words over a
+/// session, bounded so that a look-alike seen for hours does not grow the server.
+pub const KEPT_REFUSALS: usize = 256;
 
 fn lock<T>(mutex: &Mutex<T>) -> MutexGuard<'_, T> {
     // A panic elsewhere must not take the service down with it.
@@ -615,7 +619,11 @@ impl MapService {
                         %error,
                         "a place recognised in two maps was not merged"
                     );
-                    lock(&self.inner.refused).push(RefusedPlace {
+                    let mut refused = lock(&self.inner.refused);
+                    if refused.len() == KEPT_REFUSALS {
+                        refused.pop_front();
+                    }
+                    refused.push_back(RefusedPlace {
                         target,
                         source,
                         place,
@@ -627,9 +635,10 @@ impl MapService {
         None
     }
 
-    /// Places recognised in two maps by visual words but refused, oldest first.
+    /// Places recognised in two maps by visual words but refused, oldest first (the newest
+    /// [`KEPT_REFUSALS`]: a look-alike place refuses again each time it is seen).
     pub fn refused_places(&self) -> Vec<RefusedPlace> {
-        lock(&self.inner.refused).clone()
+        lock(&self.inner.refused).iter().cloned().collect()
     }
 
     /// Merges map `map` with every other map that holds a marker it holds, when live merges

@@ -531,47 +531,61 @@ impl LocalMapper {
 /// Robots writing to one map at most, as far as [`Heads`] keeps track.
 const MAX_HEADS: usize = 8;
 
+/// Keyframes others insert into a map before the head of a robot that inserted none meanwhile
+/// is let go: the robot has left the map (or stands still), and its last window, held for
+/// ever, would stiffen every later correction there. At walking pace a robot maps a keyframe
+/// every 0.1–0.3 s, so this is tens of seconds of the others' mapping.
+const HEAD_STALE_AFTER: u64 = 100;
+
 /// Where each robot writing to a map is: its newest keyframe. A request does not say which
 /// robot sent it, but it names the tracker's reference keyframe, near the robot: the new
 /// keyframe replaces the head that is that reference, or else the head nearest it. So after
 /// two maps are merged the robots of both keep a head each, and an optimisation of the whole
 /// map holds both robots' windows still instead of swinging the part one of them tracks in.
 #[derive(Debug, Default)]
-struct Heads(Vec<KeyFrameId>);
+struct Heads {
+    /// Each head and the count of insertions when it became one.
+    heads: Vec<(KeyFrameId, u64)>,
+    inserted: u64,
+}
 
 impl Heads {
     fn add(&mut self, k: KeyFrameId) {
-        if !self.0.contains(&k) {
-            self.0.push(k);
+        if !self.heads.iter().any(|&(h, _)| h == k) {
+            self.heads.push((k, self.inserted));
         }
-        if self.0.len() > MAX_HEADS {
-            self.0.remove(0);
+        if self.heads.len() > MAX_HEADS {
+            self.heads.remove(0);
         }
     }
 
     /// Keyframe `k` was inserted by the tracker whose reference was `reference`.
     fn advance(&mut self, map: &Map, reference: Option<KeyFrameId>, k: KeyFrameId) {
+        self.inserted += 1;
         let replaced = reference.and_then(|r| {
             let at = map.world_from_keyframe(r).translation;
-            self.0.iter().position(|&h| h == r).or_else(|| {
-                self.0
+            self.heads.iter().position(|&(h, _)| h == r).or_else(|| {
+                self.heads
                     .iter()
                     .enumerate()
-                    .map(|(i, &h)| (i, (map.world_from_keyframe(h).translation - at).norm()))
+                    .map(|(i, &(h, _))| (i, (map.world_from_keyframe(h).translation - at).norm()))
                     .min_by(|a, b| a.1.total_cmp(&b.1))
                     .map(|(i, _)| i)
             })
         });
         match replaced {
-            Some(i) => self.0[i] = k,
+            Some(i) => self.heads[i] = (k, self.inserted),
             None => self.add(k),
         }
+        let now = self.inserted;
+        self.heads
+            .retain(|&(_, since)| now - since <= HEAD_STALE_AFTER);
     }
 
     /// Every head (or the live keyframe it was culled into) and its local window.
     fn held(&self, map: &Map) -> HashSet<KeyFrameId> {
         let mut held = HashSet::new();
-        for &head in &self.0 {
+        for &(head, _) in &self.heads {
             let mut live = head;
             while let Some((parent, _)) = map.keyframe(live).parent {
                 live = parent;
@@ -580,6 +594,11 @@ impl Heads {
             held.extend(mapping::local_window(map, live));
         }
         held
+    }
+
+    #[cfg(test)]
+    fn keyframes(&self) -> Vec<KeyFrameId> {
+        self.heads.iter().map(|&(h, _)| h).collect()
     }
 }
 
@@ -621,14 +640,22 @@ mod tests {
         // A's next keyframe, tracked from its own newest; then B's, tracked from its own.
         heads.advance(&map, Some(KeyFrameId(2)), KeyFrameId(5));
         heads.advance(&map, Some(KeyFrameId(4)), KeyFrameId(6));
-        assert_eq!(heads.0, vec![KeyFrameId(5), KeyFrameId(6)]);
+        assert_eq!(heads.keyframes(), vec![KeyFrameId(5), KeyFrameId(6)]);
         // A tracks from an older keyframe of its own, not a head: the nearest head is its.
         heads.advance(&map, Some(KeyFrameId(1)), KeyFrameId(7));
-        assert_eq!(heads.0, vec![KeyFrameId(7), KeyFrameId(6)]);
+        assert_eq!(heads.keyframes(), vec![KeyFrameId(7), KeyFrameId(6)]);
         // A head culled since is held through the keyframe it was culled into.
         map.keyframes[6].parent = Some((KeyFrameId(4), Se3::identity()));
         let held = heads.held(&map);
         assert!(held.contains(&KeyFrameId(7)) && held.contains(&KeyFrameId(4)));
         assert!(!held.contains(&KeyFrameId(6)));
+        // B leaves: once others have inserted enough keyframes since its last (A's one above
+        // and these), B's head is let go.
+        for _ in 0..HEAD_STALE_AFTER - 1 {
+            heads.advance(&map, Some(KeyFrameId(7)), KeyFrameId(7));
+        }
+        assert_eq!(heads.keyframes(), vec![KeyFrameId(7), KeyFrameId(6)]);
+        heads.advance(&map, Some(KeyFrameId(7)), KeyFrameId(7));
+        assert_eq!(heads.keyframes(), vec![KeyFrameId(7)]);
     }
 }
