@@ -13,17 +13,23 @@ use vsgraphs_eval::semantics::SemanticReport;
 use vsgraphs_pipeline::PipelineConfig;
 use vsgraphs_sim::scenarios::Scenario;
 
-#[test]
-fn two_robots_maps_merge_into_one_building() {
-    let path = concat!(env!("CARGO_MANIFEST_DIR"), "/data/two_wings.json");
-    let scenario = Scenario::load(path).unwrap();
-    let run = scenario::run_together(
+/// Every robot of `tests/data/FILE`, one after the other, into one server's maps, with the
+/// default settings.
+fn together(file: &str) -> scenario::TogetherRun {
+    let path = format!("{}/data/{file}", env!("CARGO_MANIFEST_DIR"));
+    let scenario = Scenario::load(&path).unwrap();
+    scenario::run_together(
         &PipelineConfig::default(),
         &scenario,
         &ScenarioOptions::default(),
         |_, _, _| {},
     )
-    .unwrap();
+    .unwrap()
+}
+
+#[test]
+fn two_robots_maps_merge_into_one_building() {
+    let run = together("two_wings.json");
     for r in &run.robots {
         eprintln!(
             "{}: {} frames, {} tracked, alone ATE {:?} m, {} poses in the merged map",
@@ -135,15 +141,7 @@ fn a_room_that_looks_like_another_is_refused_by_its_markers() {
     // two_wings with the east room drawn exactly as the west room (`looks_like`): the second
     // robot's keyframes in it recognise the first robot's room by words and geometry alike,
     // but the place would put its markers on the first room's markers of other ids.
-    let path = concat!(env!("CARGO_MANIFEST_DIR"), "/data/lookalike_wings.json");
-    let scenario = Scenario::load(path).unwrap();
-    let run = scenario::run_together(
-        &PipelineConfig::default(),
-        &scenario,
-        &ScenarioOptions::default(),
-        |_, _, _| {},
-    )
-    .unwrap();
+    let run = together("lookalike_wings.json");
     for m in &run.merges {
         eprintln!("merge: {m:?}");
     }
