@@ -1,6 +1,7 @@
 //! Tracking under bad input: black and blank images, frames without depth, time jumps, a
 //! session restart. Each says what happened through the tracker's state and events, nothing
-//! panics, and the robot relocalises in its map when good frames come back.
+//! panics, and the robot relocalises in its map when good frames come back, or in another
+//! robot's map when it is there.
 
 use vsgraphs_optim::Pinhole;
 use vsgraphs_pipeline::MapService;
@@ -32,6 +33,24 @@ fn frames(count: usize) -> (Pinhole, Vec<RawFrame>, (u32, u32)) {
         frames,
         (c.width, c.height),
     )
+}
+
+/// A grey image of a place no walk sees: noise in blocks of 4×4 pixels, so that FAST finds
+/// corners at every scale.
+fn noise_wall(size: (u32, u32)) -> Vec<u8> {
+    let (width, height) = (size.0 as usize, size.1 as usize);
+    let mut state = 0x9e37_79b9_7f4a_7c15_u64;
+    let noise: Vec<u8> = (0..width * height)
+        .map(|_| {
+            state ^= state << 13;
+            state ^= state >> 7;
+            state ^= state << 17;
+            (state >> 56) as u8
+        })
+        .collect();
+    (0..width * height)
+        .map(|i| noise[(i / width / 4) * width + (i % width) / 4])
+        .collect()
 }
 
 struct Rig {
@@ -157,21 +176,7 @@ fn a_robot_that_never_comes_back_starts_a_new_map() {
     assert_eq!(rig.tracker.maps().len(), 1);
     // Somewhere the map has never seen (a textured wall 2 m away, blurred noise):
     // relocalisation fails, and as more than 3 s have passed, a second map starts.
-    let (width, height) = (size.0 as usize, size.1 as usize);
-    let mut state = 0x9e37_79b9_7f4a_7c15_u64;
-    let noise: Vec<u8> = (0..n)
-        .map(|_| {
-            state ^= state << 13;
-            state ^= state >> 7;
-            state ^= state << 17;
-            (state >> 56) as u8
-        })
-        .collect();
-    // Blocks of 4×4 pixels, so that FAST finds corners at every scale.
-    let elsewhere: Vec<u8> = (0..n)
-        .map(|i| noise[(i / width / 4) * width + (i % width) / 4])
-        .collect();
-    assert_eq!(elsewhere.len(), width * height);
+    let elsewhere = noise_wall(size);
     let r = rig.track(t0 + 4.5, &elsewhere, &vec![2000; n]);
     assert_eq!(r.state, TrackingState::Tracking, "{r:?}");
     assert_eq!(r.map, 1);
@@ -208,4 +213,66 @@ fn a_robot_carried_back_to_where_it_began_relocalises_there_at_once() {
     assert_eq!(back.event.as_deref(), Some("relocalised"));
     let error = poses[3].inverse().compose(&back.world_from_camera.unwrap());
     assert!(error.translation.norm() < 0.05, "{error:?}");
+}
+
+#[test]
+fn a_lost_robot_relocalises_in_another_robots_map() {
+    let (camera, frames, size) = frames(90);
+    let n = (size.0 * size.1) as usize;
+    let maps = MapService::new();
+    let rig = |maps: &MapService| Rig {
+        tracker: Tracker::new(TrackerConfig::default()).unwrap(),
+        maps: maps.clone(),
+        camera,
+        size,
+    };
+    // The first robot maps the start of the walk.
+    let mut first = rig(&maps);
+    let mut poses = Vec::new();
+    for (t, grey, depth) in &frames[..60] {
+        let r = first.track(*t, grey, depth);
+        assert_eq!(r.state, TrackingState::Tracking, "t={t}: {r:?}");
+        poses.push(r.world_from_camera.unwrap());
+    }
+    first.tracker.flush(&mut first.maps).unwrap();
+    let walked = first.tracker.maps()[0].id();
+    // The second starts elsewhere, in a map of its own, then restarts where the first began:
+    // its own map knows nothing of the place, the first robot's does.
+    let mut second = rig(&maps);
+    let started = second.track(0.0, &noise_wall(size), &vec![2000; n]);
+    assert_eq!(started.state, TrackingState::Tracking, "{started:?}");
+    assert_ne!(second.tracker.maps()[0].id(), walked);
+    second.tracker.restart();
+    let (t, grey, depth) = &frames[5];
+    let found = second.track(1.0 + t, grey, depth);
+    assert_eq!(found.state, TrackingState::Tracking, "{found:?}");
+    assert!(found.joined, "{found:?}");
+    assert_eq!(found.map, 1);
+    assert_eq!(second.tracker.maps()[1].id(), walked);
+    assert!(
+        found
+            .event
+            .as_deref()
+            .is_some_and(|e| e.starts_with(&format!("relocalised in map {}", walked.0))),
+        "{found:?}"
+    );
+    // In the first robot's frame, where the first robot was.
+    let error = poses[5]
+        .inverse()
+        .compose(&found.world_from_camera.unwrap());
+    assert!(error.translation.norm() < 0.05, "{error:?}");
+    // And it goes on tracking there, on past where the first robot stopped, adding keyframes
+    // to the shared map.
+    let before = first.tracker.maps()[0].read().keyframes.len();
+    for (t, grey, depth) in &frames[6..] {
+        let r = second.track(1.0 + t, grey, depth);
+        assert_eq!((r.state, r.map), (TrackingState::Tracking, 1), "{r:?}");
+    }
+    second.tracker.flush(&mut second.maps).unwrap();
+    let map = second.tracker.maps()[1].read();
+    assert!(
+        map.keyframes.len() > before,
+        "{} keyframes",
+        map.keyframes.len()
+    );
 }

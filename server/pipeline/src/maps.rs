@@ -767,6 +767,13 @@ impl MapWriter for MapService {
         lock(&self.inner.moves).get(&map.id()).cloned()
     }
 
+    fn maps(&self) -> Vec<Arc<SharedMap>> {
+        lock(&self.inner.maps)
+            .values()
+            .map(|entry| entry.map.clone())
+            .collect()
+    }
+
     fn create_map(
         &mut self,
         settings: &MappingConfig,

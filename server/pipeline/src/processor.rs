@@ -308,10 +308,10 @@ fn track(
                 (map.live_keyframes(), map.live_points(), map.markers.len())
             });
             // A keyframe changed the map (its writer publishes the map as it left it), or the
-            // robot moved into the map its own was merged into.
+            // robot moved into the map its own was merged into, or relocalised in another.
             let changed = result
                 .as_ref()
-                .is_some_and(|r| r.keyframe.is_some() || !r.followed.is_empty());
+                .is_some_and(|r| r.keyframe.is_some() || !r.followed.is_empty() || r.joined);
             let map_snapshots = active
                 .filter(|_| changed)
                 .and_then(|(_, m)| maps.snapshots(m.id()));

@@ -66,6 +66,12 @@ pub trait MapWriter {
         let _ = map;
         None
     }
+
+    /// Every map there is now, of every robot, oldest first (none merged away): a lost robot
+    /// looks for itself in all of them, not only in the maps it made.
+    fn maps(&self) -> Vec<Arc<SharedMap>> {
+        Vec::new()
+    }
 }
 
 /// Where a merged map's content went: its keyframe `k` is keyframe `k + keyframe_offset` of

@@ -185,6 +185,9 @@ pub struct FrameResult {
     /// The robot's maps that were merged into others before this frame, and that it followed
     /// there: a caller that kept poses and anchors of those maps must move them too.
     pub followed: Vec<FollowedMerge>,
+    /// The robot relocalised in a map of the server it was not tracking in, which is now its
+    /// map `map` (see [`Tracker::maps`]).
+    pub joined: bool,
     pub times: StageTimes,
 }
 
@@ -422,11 +425,12 @@ impl Tracker {
             anchor: None,
             event,
             followed,
+            joined: false,
             times,
         };
         let tracking_started = Instant::now();
         let tracking_cpu_started = thread_cpu_time();
-        let active = self.maps.last().cloned();
+        let mut active = self.maps.last().cloned();
         let tracked = match self.state {
             TrackingState::Initialising => {
                 self.initialise(writer, frame, &rig, &mut result)?;
@@ -445,7 +449,7 @@ impl Tracker {
                 outcome.map(|o| (frame, o))
             }
             TrackingState::Lost => {
-                let outcome = active.as_ref().and_then(|map| {
+                let mut outcome = active.as_ref().and_then(|map| {
                     self.relocaliser.relocalise(
                         &map.read(),
                         &frame,
@@ -455,12 +459,25 @@ impl Tracker {
                         &mut self.statistics,
                     )
                 });
+                let mut event = "relocalised".to_owned();
+                if outcome.is_none() {
+                    if let Some((map, o)) = self.relocalise_elsewhere(writer, &frame, &rig) {
+                        event = format!(
+                            "relocalised in map {} (another's): map {} of the robot",
+                            map.id().0,
+                            self.maps.len() - 1
+                        );
+                        result.joined = true;
+                        active = Some(map);
+                        outcome = Some(o);
+                    }
+                }
                 match outcome {
                     Some(o) => {
                         self.state = TrackingState::Tracking;
                         self.lost_since_ns = None;
                         self.relocalised_ns = Some(timestamp_ns);
-                        result.event = Some("relocalised".to_owned());
+                        result.event = Some(event);
                         Some((frame, o))
                     }
                     None => {
@@ -496,6 +513,46 @@ impl Tracker {
             result.map = self.active_index();
         }
         Ok(result)
+    }
+
+    /// Relocalises in a map of the server other than the active one: one another robot made,
+    /// or one this robot left. On success the robot joins that map: what the active map has
+    /// pending lands there, and the found map becomes the robot's newest (a new index, as a
+    /// new map would be, so poses kept by index stay in the frames they were made in).
+    fn relocalise_elsewhere(
+        &mut self,
+        writer: &mut dyn MapWriter,
+        frame: &Frame,
+        rig: &Rig,
+    ) -> Option<(Arc<SharedMap>, Tracked)> {
+        let active = self.maps.last().map(|m| m.id());
+        for map in writer.maps() {
+            if Some(map.id()) == active || map.read().rig.as_ref() != Some(rig) {
+                continue;
+            }
+            // The point statistics of one map's attempt mean nothing to another map.
+            let mut statistics = PointStatistics::default();
+            let tracked = self.relocaliser.relocalise_elsewhere(
+                &map.read(),
+                frame,
+                rig,
+                &self.local_map,
+                &mut statistics,
+            );
+            if let Some(tracked) = tracked {
+                if let Err(e) = self.flush(writer) {
+                    tracing::warn!(error = %e, "the last local BA of a map was lost");
+                }
+                self.statistics = statistics;
+                self.maps.push(map.clone());
+                self.reference = None;
+                self.last = None;
+                self.velocity = None;
+                self.relocaliser.reset();
+                return Some((map, tracked));
+            }
+        }
+        None
     }
 
     /// Follows the robot's maps that were merged into others (and on, when those were merged

@@ -49,7 +49,8 @@ impl Relocaliser {
     }
 
     /// A mapped marker in view gives the pose at once (then the local map around the
-    /// keyframes that saw it refines it); otherwise the next few keyframes are tried.
+    /// keyframes that saw it refines it); otherwise the keyframes the frame's words point to,
+    /// then the next few keyframes in turn.
     #[allow(clippy::too_many_arguments)]
     pub fn relocalise(
         &mut self,
@@ -64,59 +65,22 @@ impl Relocaliser {
         if keyframes == 0 {
             return None;
         }
-        if let Some((id, world_from_camera)) = markers::pose_from_markers(map, &frame.markers) {
-            let seeds: Vec<KeyFrameId> = map.markers[&id]
-                .observations
-                .iter()
-                .map(|&(k, _)| k)
-                .collect();
-            let matched = Matched {
-                world_from_camera,
-                pairs: Vec::new(),
-                inliers: 0,
-            };
-            let tracked = search.track(
-                map,
-                frame,
-                rig,
-                matched,
-                true,
-                &seeds,
-                fallback_reference,
-                statistics,
-            );
-            if tracked.is_some() {
-                return tracked;
-            }
-        }
-        // The keyframes whose words the frame shares first, then as many again of the map in
-        // turn, newest first: a robot that has just lost track is most likely near its newest
-        // keyframes, and words can miss a place whose texture repeats elsewhere.
-        let bag = places::bag_of(frame);
-        let recognised = map.places.candidates(
-            &bag,
-            0.0,
-            |_| false,
-            |k| {
-                map.neighbours(k)
-                    .iter()
-                    .take(GROUP_NEIGHBOURS)
-                    .map(|n| n.0)
-                    .collect()
-            },
+        let (tracked, by_words) = recognise(
+            map,
+            frame,
+            rig,
+            search,
+            self.candidates,
+            fallback_reference,
+            statistics,
         );
-        let by_words = recognised
-            .iter()
-            .map(|c| c.keyframe)
-            .take(self.candidates)
-            .collect::<Vec<_>>();
-        for &k in &by_words {
-            if let Some(tracked) =
-                self.try_keyframe(map, frame, rig, search, k, fallback_reference, statistics)
-            {
-                return Some(tracked);
-            }
+        if tracked.is_some() {
+            self.cursor = 0;
+            return tracked;
         }
+        // Then as many again of the map in turn, newest first: a robot that has just lost
+        // track is most likely near its newest keyframes, and words can miss a place whose
+        // texture repeats elsewhere.
         let mut tries = self.candidates.min(keyframes);
         for _ in 0..keyframes {
             if tries == 0 {
@@ -130,56 +94,135 @@ impl Relocaliser {
             }
             tries -= 1;
             if let Some(tracked) =
-                self.try_keyframe(map, frame, rig, search, k, fallback_reference, statistics)
+                try_keyframe(map, frame, rig, search, k, fallback_reference, statistics)
             {
+                self.cursor = 0;
                 return Some(tracked);
             }
         }
         None
     }
 
-    /// The frame against one keyframe, then the local map around it.
-    #[allow(clippy::too_many_arguments)]
-    fn try_keyframe(
-        &mut self,
+    /// Relocalises in a map the robot is not tracking in (another robot's, or one it left):
+    /// only where a mapped marker in view or the frame's words point, since a round of that
+    /// map's newest keyframes says nothing of where this robot is.
+    pub fn relocalise_elsewhere(
+        &self,
         map: &Map,
         frame: &Frame,
         rig: &Rig,
         search: &LocalMapSearch,
-        k: KeyFrameId,
-        fallback_reference: Option<KeyFrameId>,
         statistics: &mut PointStatistics,
     ) -> Option<Tracked> {
-        let matched = against_keyframe(map, frame, rig, k)?;
-        let candidates = matched.inliers;
+        if map.keyframes.is_empty() {
+            return None;
+        }
+        recognise(map, frame, rig, search, self.candidates, None, statistics).0
+    }
+}
+
+/// The frame in `map` by a mapped marker in view, else against the (at most `candidates`)
+/// keyframes whose words the frame shares, each confirmed on the local map; with the
+/// keyframes the words gave.
+fn recognise(
+    map: &Map,
+    frame: &Frame,
+    rig: &Rig,
+    search: &LocalMapSearch,
+    candidates: usize,
+    fallback_reference: Option<KeyFrameId>,
+    statistics: &mut PointStatistics,
+) -> (Option<Tracked>, Vec<KeyFrameId>) {
+    if let Some((id, world_from_camera)) = markers::pose_from_markers(map, &frame.markers) {
+        let seeds: Vec<KeyFrameId> = map.markers[&id]
+            .observations
+            .iter()
+            .map(|&(k, _)| k)
+            .collect();
+        let matched = Matched {
+            world_from_camera,
+            pairs: Vec::new(),
+            inliers: 0,
+        };
         let tracked = search.track(
             map,
             frame,
             rig,
             matched,
             true,
-            &[],
+            &seeds,
             fallback_reference,
             statistics,
         );
-        if let Some(tracked) = tracked {
-            tracing::debug!(
-                stamp_ns = frame.timestamp_ns,
-                keyframe = k.0,
-                inliers = tracked.inliers,
-                "relocalised against a keyframe"
-            );
-            self.cursor = 0;
-            return Some(tracked);
+        if tracked.is_some() {
+            return (tracked, Vec::new());
         }
-        tracing::debug!(
+    }
+    let bag = places::bag_of(frame);
+    let recognised = map.places.candidates(
+        &bag,
+        0.0,
+        |_| false,
+        |k| {
+            map.neighbours(k)
+                .iter()
+                .take(GROUP_NEIGHBOURS)
+                .map(|n| n.0)
+                .collect()
+        },
+    );
+    let by_words = recognised
+        .iter()
+        .map(|c| c.keyframe)
+        .take(candidates)
+        .collect::<Vec<_>>();
+    for &k in &by_words {
+        if let Some(tracked) =
+            try_keyframe(map, frame, rig, search, k, fallback_reference, statistics)
+        {
+            return (Some(tracked), by_words);
+        }
+    }
+    (None, by_words)
+}
+
+/// The frame against one keyframe, then the local map around it.
+fn try_keyframe(
+    map: &Map,
+    frame: &Frame,
+    rig: &Rig,
+    search: &LocalMapSearch,
+    k: KeyFrameId,
+    fallback_reference: Option<KeyFrameId>,
+    statistics: &mut PointStatistics,
+) -> Option<Tracked> {
+    let matched = against_keyframe(map, frame, rig, k)?;
+    let candidates = matched.inliers;
+    let tracked = search.track(
+        map,
+        frame,
+        rig,
+        matched,
+        true,
+        &[],
+        fallback_reference,
+        statistics,
+    );
+    match &tracked {
+        Some(tracked) => tracing::debug!(
+            stamp_ns = frame.timestamp_ns,
+            keyframe = k.0,
+            inliers = tracked.inliers,
+            "relocalised against a keyframe"
+        ),
+        None => tracing::debug!(
             stamp_ns = frame.timestamp_ns,
             keyframe = k.0,
             candidates,
             "relocalisation failed on the local map"
-        );
-        None
+        ),
     }
+    tracked
 }
 
 /// The frame's pose against keyframe `k`: descriptor matches, RANSAC on their depths, then
