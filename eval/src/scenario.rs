@@ -94,6 +94,11 @@ pub struct ScenarioRun {
     pub ate_as_tracked_rmse: Option<f64>,
     /// ATE over the reference path length (the measure for simulated runs).
     pub ate_percent_of_path: Option<f64>,
+    /// The end-to-start drift: how far the estimate's last pose is from where the truth puts it
+    /// relative to the estimate's first (the error of the first-to-last relative pose), metres
+    /// and degrees. What closing a loop back to the start corrects.
+    pub end_to_start_m: Option<f64>,
+    pub end_to_start_deg: Option<f64>,
     /// The map's building model scored against the building (aligned by shared markers), or
     /// why it could not be.
     pub semantics: Option<SemanticReport>,
@@ -104,8 +109,8 @@ pub struct ScenarioRun {
     /// long, or was restarted, starts a map that merges when it meets the old one).
     pub maps_at_end: usize,
     pub merges: Vec<MergeRow>,
-    /// Places recognised in two maps by visual words and refused, and why.
-    pub refused_places: Vec<(u32, u32, String)>,
+    /// Merges refused (places recognised by visual words, shared markers), and why.
+    pub refused_merges: Vec<(u32, u32, String)>,
     #[serde(skip)]
     pub model: BuildingModel,
     #[serde(skip)]
@@ -266,6 +271,7 @@ pub fn run(
     let ate_percent_of_path = ate
         .as_ref()
         .map(|r| 100.0 * r.stats.rmse / r.reference_path_length.max(1e-9));
+    let drift = end_to_start(&reference, &estimate);
     let last_view = summary.map_views.iter().find(|v| Some(v.map) == last_map);
     let model = last_view
         .map(vsgraphs_pipeline::model::building_model)
@@ -287,6 +293,8 @@ pub fn run(
         ate,
         ate_as_tracked_rmse,
         ate_percent_of_path,
+        end_to_start_m: drift.map(|d| d.0),
+        end_to_start_deg: drift.map(|d| d.1),
         semantics,
         semantics_error,
         loops,
@@ -301,7 +309,7 @@ pub fn run(
                 )
             })
             .collect(),
-        refused_places: refused_places(&service),
+        refused_merges: refused_merges(&service),
         model,
         estimate,
         estimate_as_tracked,
@@ -444,8 +452,8 @@ pub struct TogetherRun {
     pub merges: Vec<MergeRow>,
     /// Pairs of maps not merged, and why.
     pub not_merged: Vec<(u32, u32, String)>,
-    /// Places recognised in two maps by visual words and refused, and why.
-    pub refused_places: Vec<(u32, u32, String)>,
+    /// Merges refused (places recognised by visual words, shared markers), and why.
+    pub refused_merges: Vec<(u32, u32, String)>,
     /// Maps left at the end.
     pub maps: usize,
     /// The map with the most keyframes at the end, which is scored, and its live keyframes.
@@ -498,12 +506,33 @@ fn next_map_id(service: &MapService) -> u32 {
     live.chain(merged).max().map_or(0, |id| id + 1)
 }
 
-fn refused_places(service: &MapService) -> Vec<(u32, u32, String)> {
+fn refused_merges(service: &MapService) -> Vec<(u32, u32, String)> {
     service
-        .refused_places()
+        .refused_merges()
         .into_iter()
-        .map(|r| (r.target.0, r.source.0, r.reason))
+        .map(|r| {
+            let by = if r.place.is_some() {
+                "a place recognised by words"
+            } else {
+                "shared markers"
+            };
+            (r.target.0, r.source.0, format!("{by}: {}", r.reason))
+        })
         .collect()
+}
+
+/// The error of `estimate`'s first-to-last relative pose against the truth's, metres and
+/// degrees: independent of the frame either is in, so no alignment is needed.
+fn end_to_start(reference: &Trajectory, estimate: &Trajectory) -> Option<(f64, f64)> {
+    let last = estimate.len().checked_sub(1).filter(|&l| l > 0)?;
+    let truth = |i: usize| truth_at(reference, estimate.stamps[i]);
+    let true_move = truth(0)?.inverse() * truth(last)?;
+    let estimated_move = estimate.poses[0].inverse() * estimate.poses[last];
+    let error = true_move.inverse() * estimated_move;
+    Some((
+        error.translation.vector.norm(),
+        error.rotation.angle().to_degrees(),
+    ))
 }
 
 /// The reference pose at `stamp` (within a millisecond).
@@ -647,7 +676,7 @@ pub fn run_together(
         robots,
         merges,
         not_merged,
-        refused_places: refused_places(&service),
+        refused_merges: refused_merges(&service),
         maps: service.len(),
         final_map: final_map.map(|id| id.0),
         final_keyframes: final_map
@@ -754,8 +783,8 @@ pub fn print_together(run: &TogetherRun) {
     for (target, source, why) in &run.not_merged {
         println!("map {source} not merged into map {target}: {why}");
     }
-    for (target, source, why) in &run.refused_places {
-        println!("place recognised in maps {target} and {source}, refused: {why}");
+    for (target, source, why) in &run.refused_merges {
+        println!("maps {target} and {source} refused, by {why}");
     }
     println!(
         "{} map(s) at the end; scored: {:?}",
@@ -848,6 +877,9 @@ pub fn print_table(run: &ScenarioRun) {
             if let Some(rmse) = run.ate_as_tracked_rmse {
                 println!("ATE RMSE of the poses as tracked at the time: {rmse:.6} m");
             }
+            if let (Some(m), Some(deg)) = (run.end_to_start_m, run.end_to_start_deg) {
+                println!("end-to-start drift: {m:.4} m, {deg:.3}°");
+            }
         }
         None => println!("ATE: fewer than 3 tracked poses"),
     }
@@ -902,4 +934,52 @@ fn trajectory_alignment(reference: &Trajectory, estimate: &Trajectory) -> Option
         rotation: similarity.rotation,
         translation: similarity.translation,
     })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use nalgebra::{Isometry3, Translation3, UnitQuaternion, Vector3};
+
+    /// A walk of `n` poses along x, a metre apart, each turned by `yaw_step` more than the
+    /// last, in a frame `frame` away.
+    fn walk(n: usize, yaw_step: f64, frame: Isometry3<f64>) -> Trajectory {
+        let mut pose = frame;
+        let mut t = Trajectory::default();
+        for i in 0..n {
+            t.stamps.push(i as f64);
+            t.poses.push(pose);
+            let step = Isometry3::from_parts(
+                Translation3::new(1.0, 0.0, 0.0),
+                UnitQuaternion::from_euler_angles(0.0, 0.0, yaw_step),
+            );
+            pose *= step;
+        }
+        t
+    }
+
+    #[test]
+    fn end_to_start_drift_is_the_error_of_the_first_to_last_move() {
+        let truth = walk(5, 0.0, Isometry3::identity());
+        // The same walk in another frame: no drift, whatever the frame.
+        let elsewhere = Isometry3::from_parts(
+            Translation3::new(3.0, -2.0, 1.0),
+            UnitQuaternion::from_euler_angles(0.3, 0.1, 2.0),
+        );
+        let (m, deg) = end_to_start(&truth, &walk(5, 0.0, elsewhere)).unwrap();
+        assert!(m < 1e-12 && deg < 1e-9, "{m} {deg}");
+        // Each of the four steps turned by 1°: the end is 4° off, and off to the side by the
+        // sum of the steps' sideways moves (sin 1° + sin 2° + sin 3°, 0.105 m).
+        let (m, deg) = end_to_start(&truth, &walk(5, 1f64.to_radians(), elsewhere)).unwrap();
+        assert!((deg - 4.0).abs() < 1e-9, "{deg}");
+        let sideways: f64 = (1..4).map(|k| f64::from(k).to_radians().sin()).sum();
+        let along: f64 = (1..4).map(|k| 1.0 - f64::from(k).to_radians().cos()).sum();
+        let want = Vector3::new(along, sideways, 0.0).norm();
+        assert!((m - want).abs() < 1e-9, "{m} against {want}");
+        // Fewer than two poses, or poses the truth lacks: no figure.
+        assert_eq!(end_to_start(&truth, &walk(1, 0.0, elsewhere)), None);
+        let mut late = walk(5, 0.0, elsewhere);
+        late.stamps[4] = 9.5;
+        assert_eq!(end_to_start(&truth, &late), None);
+    }
 }

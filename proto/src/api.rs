@@ -403,7 +403,8 @@ pub struct MapMerge {
     /// When it was made (ns since the Unix epoch, the server's clock).
     pub at_ns: u64,
     /// Markers both maps held that put one map in the other, and of those the ones turned in
-    /// one map; markers both held that disagree.
+    /// one map; markers both held that disagree (an id printed twice or misread: the merged
+    /// map keeps the target's landmark and leaves the source's out).
     pub markers: Vec<i32>,
     pub turned: Vec<i32>,
     pub disagreeing: Vec<i32>,

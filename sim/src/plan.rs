@@ -18,6 +18,9 @@
 //! A room is bounded by its four walls; a corridor by its two long walls (its ends are open).
 //! A space may copy the look of another of the same kind and size (`"looks_like": "Lab"`):
 //! the same textures and colours, told apart by their markers only.
+//! A marker may be printed with another's id by mistake (`"misprints": [{"marker": 12,
+//! "printed": 3}]`: marker 12 hangs where it does but shows id 3), for testing that a reused id
+//! does not join two places.
 //! A door's `at` is the middle of its opening, on the wall line the two spaces share.
 
 use nalgebra::Vector3;
@@ -36,6 +39,18 @@ pub struct FloorPlan {
     pub spaces: Vec<Space>,
     #[serde(default)]
     pub doors: Vec<Door>,
+    /// Markers printed with another marker's id.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub misprints: Vec<Misprint>,
+}
+
+/// A marker printed with the wrong id: it hangs where the building puts marker `marker`, and
+/// shows `printed`.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Misprint {
+    pub marker: u32,
+    pub printed: u32,
 }
 
 /// How markers are made and hung.
@@ -143,6 +158,16 @@ pub enum PlanError {
         "space {space:?} looks like {like:?}, which is not another space of the same kind and size"
     )]
     LooksLike { space: String, like: String },
+    #[error(
+        "misprint of marker {marker} as {printed}: the plan hangs {count} markers (0 to {count} \
+         exclusive), its dictionary holds {holds}, and a marker is misprinted once"
+    )]
+    Misprint {
+        marker: u32,
+        printed: u32,
+        count: usize,
+        holds: usize,
+    },
 }
 
 impl FloorPlan {
@@ -159,6 +184,14 @@ impl FloorPlan {
 
     pub fn space(&self, name: &str) -> Option<&Space> {
         self.spaces.iter().find(|s| s.name == name)
+    }
+
+    /// The id marker `id` shows: its own, or the one it was misprinted with.
+    pub fn printed_id(&self, id: u32) -> u32 {
+        self.misprints
+            .iter()
+            .find(|m| m.marker == id)
+            .map_or(id, |m| m.printed)
     }
 
     /// Markers the building hangs: one per bounding wall side, two per door.
@@ -253,6 +286,17 @@ impl FloorPlan {
                 needed,
                 holds: dictionary.markers,
             });
+        }
+        for (i, m) in self.misprints.iter().enumerate() {
+            let twice = self.misprints[..i].iter().any(|o| o.marker == m.marker);
+            if m.marker as usize >= needed || m.printed as usize >= dictionary.markers || twice {
+                return Err(PlanError::Misprint {
+                    marker: m.marker,
+                    printed: m.printed,
+                    count: needed,
+                    holds: dictionary.markers,
+                });
+            }
         }
         Ok(())
     }

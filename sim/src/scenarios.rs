@@ -33,6 +33,7 @@ fn plan(name: &str, spaces: Vec<Space>, doors: Vec<Door>) -> FloorPlan {
         markers: MarkerStyle::default(),
         spaces,
         doors,
+        misprints: Vec::new(),
     }
 }
 

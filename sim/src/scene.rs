@@ -260,7 +260,7 @@ impl Scene {
                 marker.world_from_marker,
                 marker.side,
                 dictionary
-                    .marker(marker.id)
+                    .marker(plan.printed_id(marker.id))
                     .expect("the plan was validated"),
             );
             let lighting = Lighting {

@@ -249,4 +249,23 @@ fn broken_plans_are_refused_with_their_reason() {
     let mut plan = scenario("seq06").unwrap();
     plan.doors[0].height = 2.4;
     assert!(matches!(plan.validate(), Err(PlanError::DoorHeight { .. })));
+    // A misprint names a marker the plan hangs and an id its dictionary holds, once.
+    let misprint = |marker, printed| vsgraphs_sim::plan::Misprint { marker, printed };
+    let mut plan = scenario("seq06").unwrap();
+    let count = plan.marker_count() as u32;
+    plan.misprints = vec![misprint(count - 1, 0)];
+    assert_eq!(plan.validate(), Ok(()));
+    assert_eq!((plan.printed_id(count - 1), plan.printed_id(0)), (0, 0));
+    for wrong in [
+        vec![misprint(count, 0)],
+        vec![misprint(0, 100)],
+        vec![misprint(1, 0), misprint(1, 2)],
+    ] {
+        plan.misprints = wrong;
+        assert!(
+            matches!(plan.validate(), Err(PlanError::Misprint { .. })),
+            "{:?}",
+            plan.misprints
+        );
+    }
 }

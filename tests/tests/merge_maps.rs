@@ -6,7 +6,7 @@
 //! frame. Without markers in the maps, a robot restarted in a new session meets its old map
 //! where a keyframe of the new one shows a place of the old, found by visual words. A room
 //! drawn exactly as another (`lookalike_wings.json`) is recognised by words but refused by its
-//! markers.
+//! markers; a marker printed with another's id (`misprinted_wings.json`) joins nothing.
 
 use vsgraphs_eval::scenario::{self, ScenarioOptions};
 use vsgraphs_eval::semantics::SemanticReport;
@@ -25,6 +25,16 @@ fn together(file: &str) -> scenario::TogetherRun {
         |_, _, _| {},
     )
     .unwrap()
+}
+
+/// Prints what a together run merged and refused, for the test's log.
+fn show(run: &scenario::TogetherRun) {
+    for m in &run.merges {
+        eprintln!("merge: {m:?}");
+    }
+    for r in &run.refused_merges {
+        eprintln!("refused: {r:?}");
+    }
 }
 
 #[test]
@@ -105,7 +115,7 @@ fn a_restarted_robot_merges_by_a_place_it_recognises_without_markers() {
     for m in &run.merges {
         eprintln!("merge: {m:?}");
     }
-    for r in &run.refused_places {
+    for r in &run.refused_merges {
         eprintln!("refused: {r:?}");
     }
     assert!(
@@ -142,18 +152,13 @@ fn a_room_that_looks_like_another_is_refused_by_its_markers() {
     // robot's keyframes in it recognise the first robot's room by words and geometry alike,
     // but the place would put its markers on the first room's markers of other ids.
     let run = together("lookalike_wings.json");
-    for m in &run.merges {
-        eprintln!("merge: {m:?}");
-    }
-    for r in &run.refused_places {
-        eprintln!("refused: {r:?}");
-    }
+    show(&run);
     assert!(
-        run.refused_places
+        run.refused_merges
             .iter()
             .any(|(_, _, why)| why.contains("look alike")),
         "the look-alike room was not recognised, or not refused: {:?}",
-        run.refused_places
+        run.refused_merges
     );
     // The maps still become one, where they truly meet (the corridor's shared marker), and
     // no merge is wrong.
@@ -161,4 +166,37 @@ fn a_room_that_looks_like_another_is_refused_by_its_markers() {
     for merge in &run.merges {
         assert!(!merge.wrong, "{merge:?}");
     }
+}
+
+#[test]
+fn a_marker_id_printed_twice_joins_nothing() {
+    // two_wings with the east room's far marker (9) printed with the id of the west room's far
+    // marker (5): the second robot maps "5" in its room, 8 m from where the first robot's map
+    // holds 5.
+    let run = together("misprinted_wings.json");
+    show(&run);
+    // The id is shared, the place is not. The rooms are of one size with markers hung alike,
+    // so the points around "5" fit the first robot's room as well; the room's other markers,
+    // which that merge would put on markers of other ids, refuse it, and it is said so.
+    assert!(
+        run.refused_merges
+            .iter()
+            .any(|(_, _, why)| why.starts_with("shared markers") && why.contains("look alike")),
+        "{:?}",
+        run.refused_merges
+    );
+    // The maps become one where they truly meet (the corridor's marker 1); 5 is named as
+    // disagreeing and joins nothing.
+    assert_eq!(run.maps, 1, "{:?}", run.not_merged);
+    assert_eq!(run.merges.len(), 1);
+    let merge = &run.merges[0];
+    assert!(!merge.markers.contains(&5), "{merge:?}");
+    assert!(
+        merge.disagreeing.iter().any(|&(id, d)| id == 5 && d > 4.0),
+        "{merge:?}"
+    );
+    assert!(!merge.wrong, "{merge:?}");
+    let ate = run.ate.as_ref().unwrap();
+    eprintln!("ATE {:.4} m", ate.stats.rmse);
+    assert!(ate.stats.rmse < 0.02, "{}", ate.stats.rmse);
 }

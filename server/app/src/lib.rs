@@ -51,6 +51,8 @@ impl Server {
         let maps = MapService::with_semantics(config.semantics.enabled, dictionary)
             .with_whole_map_optimisation(config.semantics.optimise_every_keyframes)
             .with_live_merges(config.atlas.merge_maps)
+            // A live robot's worker must not wait for a merge (hundreds of ms on big maps).
+            .with_background_merges(true)
             .with_loop_closing(config.atlas.close_loops);
         vsgraphs_pipeline::FrameProcessor::new(
             &config.markers,

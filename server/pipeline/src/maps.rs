@@ -15,7 +15,7 @@ use std::any::Any;
 use std::collections::{BTreeMap, BTreeSet, VecDeque};
 use std::panic::{catch_unwind, AssertUnwindSafe};
 use std::sync::atomic::{AtomicBool, AtomicU32, Ordering};
-use std::sync::{mpsc, Arc, Mutex, MutexGuard, RwLock};
+use std::sync::{mpsc, Arc, Condvar, Mutex, MutexGuard, RwLock, Weak};
 use std::thread::JoinHandle;
 use vsgraphs_proto::api::MapView;
 use vsgraphs_semantics::{Dictionary, SemanticMap};
@@ -50,15 +50,35 @@ struct Inner {
     merging: Mutex<()>,
     /// Merge maps as soon as they share markers ([`MapService::merge_where_shared`]).
     merge_live: AtomicBool,
+    /// Look for merges on the service's merge thread rather than the robot's worker
+    /// ([`MapService::look_for_merges`]).
+    background_merges: AtomicBool,
+    looks: Arc<Looks>,
+    looker: Mutex<Option<JoinHandle<()>>>,
     /// Pairs of maps tried, with how many markers they shared then: a pair is tried again only
     /// once it shares more.
     tried: Mutex<BTreeMap<(MapId, MapId), usize>>,
-    /// Places recognised in two maps but refused, the newest [`KEPT_REFUSALS`].
-    refused: Mutex<VecDeque<RefusedPlace>>,
+    /// Merges refused, the newest [`KEPT_REFUSALS`].
+    refused: Mutex<VecDeque<RefusedMerge>>,
     /// Places of another map a map's keyframes recognised, by (map, other map), until enough
     /// keyframes in a row agree.
     places_seen: Mutex<BTreeMap<(MapId, MapId), Sightings>>,
     semantics: Arc<RwLock<Semantics>>,
+}
+
+/// Merge look-ups waiting for the service's merge thread.
+#[derive(Default)]
+struct Looks {
+    pending: Mutex<Pending>,
+    ready: Condvar,
+}
+
+#[derive(Default)]
+struct Pending {
+    /// The newest keyframe of each map not yet looked at: a newer one of the same map
+    /// supersedes it, so a busy thread falls behind by no more than a look per map.
+    keyframes: BTreeMap<MapId, KeyFrameId>,
+    stop: bool,
 }
 
 /// Where a merged map went: its keyframe `k` is keyframe `k + keyframe_offset` of `into`.
@@ -78,12 +98,14 @@ struct Sightings {
     missed: usize,
 }
 
-/// A place recognised in two maps by visual words that did not merge them, and why.
+/// Two maps that looked like one place but were not merged, and why: a place recognised by
+/// visual words, or markers of the same ids.
 #[derive(Clone, Debug)]
-pub struct RefusedPlace {
+pub struct RefusedMerge {
     pub target: MapId,
     pub source: MapId,
-    pub place: Place,
+    /// The place the words recognised (`None`: shared markers).
+    pub place: Option<Place>,
     pub reason: String,
 }
 
@@ -344,6 +366,7 @@ impl MapService {
     /// Stops every writer once it has answered what is queued, and waits for it. Maps stay
     /// readable; requests made afterwards fail.
     pub fn stop(&self) {
+        self.inner.stop_looking();
         let entries: Vec<_> = lock(&self.inner.maps).values().cloned().collect();
         for entry in &entries {
             lock(&entry.commands).take();
@@ -489,6 +512,49 @@ impl MapService {
         self
     }
 
+    /// Looks for merges on a thread of the service's own (`true`), so that a robot's worker
+    /// never waits for a merge, or on the calling robot's worker (`false`: an offline run then
+    /// makes the same merges every time).
+    pub fn with_background_merges(self, background: bool) -> Self {
+        self.inner
+            .background_merges
+            .store(background, Ordering::Relaxed);
+        self
+    }
+
+    /// Keyframe `keyframe` is new in map `map`: looks for the maps it shows one place with
+    /// ([`MapService::merge_where_recognised`]), now or on the service's merge thread
+    /// ([`MapService::with_background_merges`]).
+    pub fn look_for_merges(&self, map: MapId, keyframe: KeyFrameId) {
+        if !self.inner.merge_live.load(Ordering::Relaxed) {
+            return;
+        }
+        if !self.inner.background_merges.load(Ordering::Relaxed) {
+            self.merge_where_recognised(map, keyframe);
+            return;
+        }
+        {
+            let mut pending = lock(&self.inner.looks.pending);
+            if pending.stop {
+                return;
+            }
+            pending.keyframes.insert(map, keyframe);
+        }
+        self.inner.looks.ready.notify_one();
+        let mut looker = lock(&self.inner.looker);
+        if looker.is_none() {
+            let looks = self.inner.looks.clone();
+            let service = Arc::downgrade(&self.inner);
+            match std::thread::Builder::new()
+                .name("atlas-merges".into())
+                .spawn(move || look_in_background(&looks, &service))
+            {
+                Ok(thread) => *looker = Some(thread),
+                Err(e) => tracing::error!(error = %e, "cannot start the merge thread"),
+            }
+        }
+    }
+
     /// Every merge so far, oldest first.
     pub fn merges(&self) -> Vec<MergeReport> {
         lock(&self.inner.merge_log).clone()
@@ -516,7 +582,7 @@ impl MapService {
     /// other map, a look-up in its index of words and at most three verifications, on the
     /// calling robot's worker (so an offline run makes the same merges every time). A place
     /// recognised but refused (too few points around it, a marker that says the place is
-    /// another) is logged and counted ([`MapService::refused_places`]).
+    /// another) is logged and counted ([`MapService::refused_merges`]).
     pub fn merge_where_seen(&self, map: MapId, keyframe: KeyFrameId) -> Option<MergeReport> {
         if !self.inner.merge_live.load(Ordering::Relaxed) {
             return None;
@@ -619,14 +685,10 @@ impl MapService {
                         %error,
                         "a place recognised in two maps was not merged"
                     );
-                    let mut refused = lock(&self.inner.refused);
-                    if refused.len() == KEPT_REFUSALS {
-                        refused.pop_front();
-                    }
-                    refused.push_back(RefusedPlace {
+                    self.refuse(RefusedMerge {
                         target,
                         source,
-                        place,
+                        place: Some(place),
                         reason: error.to_string(),
                     });
                 }
@@ -635,10 +697,19 @@ impl MapService {
         None
     }
 
-    /// Places recognised in two maps by visual words but refused, oldest first (the newest
-    /// [`KEPT_REFUSALS`]: a look-alike place refuses again each time it is seen).
-    pub fn refused_places(&self) -> Vec<RefusedPlace> {
+    /// Merges refused, oldest first (the newest [`KEPT_REFUSALS`]: a look-alike place refuses
+    /// again each time it is seen): places recognised by visual words, and maps sharing
+    /// markers that do not join them (an id printed twice).
+    pub fn refused_merges(&self) -> Vec<RefusedMerge> {
         lock(&self.inner.refused).iter().cloned().collect()
+    }
+
+    fn refuse(&self, refusal: RefusedMerge) {
+        let mut refused = lock(&self.inner.refused);
+        if refused.len() == KEPT_REFUSALS {
+            refused.pop_front();
+        }
+        refused.push_back(refusal);
     }
 
     /// Merges map `map` with every other map that holds a marker it holds, when live merges
@@ -691,13 +762,23 @@ impl MapService {
                         current = target;
                         continue 'again;
                     }
-                    Err(error) => tracing::debug!(
-                        target = target.0,
-                        source = source.0,
-                        shared,
-                        %error,
-                        "maps that share markers were not merged"
-                    ),
+                    // Shared markers that do not join the maps yet, or ever (an id printed
+                    // twice): tried again, and reported again, only with more in common.
+                    Err(error) => {
+                        tracing::info!(
+                            target = target.0,
+                            source = source.0,
+                            shared,
+                            %error,
+                            "maps that share markers were not merged"
+                        );
+                        self.refuse(RefusedMerge {
+                            target,
+                            source,
+                            place: None,
+                            reason: error.to_string(),
+                        });
+                    }
                 }
             }
             break;
@@ -747,8 +828,61 @@ impl MapService {
     }
 }
 
+/// The service's merge thread: each map's newest keyframe in turn, until told to stop or the
+/// service is gone. It holds the service only while looking, so that dropping the last
+/// handle elsewhere ends it.
+fn look_in_background(looks: &Looks, service: &Weak<Inner>) {
+    loop {
+        let (map, keyframe) = {
+            let mut pending = lock(&looks.pending);
+            loop {
+                if pending.stop {
+                    return;
+                }
+                if let Some((map, keyframe)) = pending.keyframes.pop_first() {
+                    break (map, keyframe);
+                }
+                pending = looks
+                    .ready
+                    .wait(pending)
+                    .unwrap_or_else(|poisoned| poisoned.into_inner());
+            }
+        };
+        let Some(inner) = service.upgrade() else {
+            return;
+        };
+        let service = MapService { inner };
+        let looked = catch_unwind(AssertUnwindSafe(|| {
+            service.merge_where_recognised(map, keyframe)
+        }));
+        if looked.is_err() {
+            tracing::error!(
+                map = map.0,
+                keyframe = keyframe.0,
+                "looking for merges panicked; the maps stay as they were"
+            );
+        }
+    }
+}
+
+impl Inner {
+    /// Ends the merge thread once its current look is done (not waiting for itself: the last
+    /// handle of the service may be the one it holds).
+    fn stop_looking(&self) {
+        lock(&self.looks.pending).stop = true;
+        self.looks.ready.notify_all();
+        let looker = lock(&self.looker).take();
+        if let Some(thread) = looker {
+            if thread.thread().id() != std::thread::current().id() {
+                let _ = thread.join();
+            }
+        }
+    }
+}
+
 impl Drop for Inner {
     fn drop(&mut self) {
+        self.stop_looking();
         // The last handle is gone: writers finish what is queued and end.
         let maps = std::mem::take(self.maps.get_mut().unwrap_or_else(|p| p.into_inner()));
         for entry in maps.values() {

@@ -352,7 +352,7 @@ fn track(
         result.as_ref().and_then(|r| r.keyframe),
         tracker.active_map(),
     ) {
-        maps.merge_where_recognised(map.id(), keyframe);
+        maps.look_for_merges(map.id(), keyframe);
     }
     let state = match tracker.state() {
         vsgraphs_slam::TrackingState::Initialising => TrackingState::Initialising,

@@ -162,7 +162,7 @@ pub enum NoAlignment {
     )]
     PlaceUnconfirmed { point_inliers: usize },
     #[error(
-        "the place recognised puts source marker {source_marker} on target marker \
+        "the alignment puts source marker {source_marker} on target marker \
          {target_marker} ({distance_m:.2} m apart): two places that look alike"
     )]
     MarkerClash {
@@ -188,6 +188,10 @@ pub struct Absorbed {
     pub fused_markers: Vec<i32>,
     /// Markers only the source held.
     pub new_markers: Vec<i32>,
+    /// Markers both held at places the alignment does not join (an id printed twice, or
+    /// misread): the target's landmark stays as it was, the source's is left out, so that
+    /// neither is pulled towards the other's place.
+    pub left_out_markers: Vec<i32>,
     /// Points of the seam made one.
     pub fused_points: usize,
 }
@@ -340,6 +344,11 @@ pub fn align_by_markers(target: &Map, source: &Map) -> Result<Alignment, NoAlign
     let agreeing = agreeing_with(&transform);
     let placed = placed_by(&transform);
     let confirmed = !placed.is_empty() && point_inliers >= MIN_POINT_INLIERS;
+    // Markers of other ids outrank a shared one: in a room furnished and marked like another,
+    // the points around one id printed twice confirm it as well as a true one would.
+    if let Some(clash) = marker_clash(target, source, &transform) {
+        return Err(clash);
+    }
     if agreeing.len() < MIN_SHARED_MARKERS && !confirmed {
         return Err(if shared.len() == 1 {
             NoAlignment::Unconfirmed {
@@ -464,18 +473,8 @@ pub fn align_by_place(target: &Map, source: &Map, place: &Place) -> Result<Align
             turned.push(t.id);
         }
     }
-    for s in source.markers.values() {
-        let at = transform.transform_point(&s.world_from_marker.translation);
-        for t in target.markers.values().filter(|t| t.id != s.id) {
-            let distance = (t.world_from_marker.translation - at).norm();
-            if distance < t.side_m.max(s.side_m) {
-                return Err(NoAlignment::MarkerClash {
-                    target_marker: t.id,
-                    source_marker: s.id,
-                    distance_m: distance,
-                });
-            }
-        }
+    if let Some(clash) = marker_clash(target, source, &transform) {
+        return Err(clash);
     }
     Ok(Alignment {
         target_from_source: transform,
@@ -487,6 +486,30 @@ pub fn align_by_place(target: &Map, source: &Map, place: &Place) -> Result<Align
         seam,
         place: Some(*place),
     })
+}
+
+/// Two markers of different ids that `target_from_source` puts on one spot, facing one way:
+/// closer than a shared marker may be and still count as one ([`MAX_CORNER_RMS_M`]), or than a
+/// marker's side (two printed squares cannot overlap). The transform then joins two places
+/// that look alike. Markers back to back on the two faces of a wall may share a spot.
+fn marker_clash(target: &Map, source: &Map, target_from_source: &Se3) -> Option<NoAlignment> {
+    let normal = |pose: &Se3| pose.rotation * Vector3::z();
+    for s in source.markers.values() {
+        let moved = target_from_source.compose(&s.world_from_marker);
+        for t in target.markers.values().filter(|t| t.id != s.id) {
+            let distance = (t.world_from_marker.translation - moved.translation).norm();
+            let facing_one_way = normal(&t.world_from_marker).dot(&normal(&moved)) > 0.0;
+            let apart = MAX_CORNER_RMS_M.max(t.side_m).max(s.side_m);
+            if distance < apart && facing_one_way {
+                return Some(NoAlignment::MarkerClash {
+                    target_marker: t.id,
+                    source_marker: s.id,
+                    distance_m: distance,
+                });
+            }
+        }
+    }
+    None
 }
 
 /// Keyframes around a recognised place, on each side, whose points take part (the place's
@@ -712,6 +735,7 @@ pub fn absorb(target: &mut Map, source: &Map, alignment: &Alignment) -> Absorbed
         target_from_source: *target_from_source,
         fused_markers: Vec::new(),
         new_markers: Vec::new(),
+        left_out_markers: Vec::new(),
         fused_points: 0,
     };
     let rotation = target_from_source.rotation;
@@ -776,6 +800,13 @@ pub fn absorb(target: &mut Map, source: &Map, alignment: &Alignment) -> Absorbed
             .iter()
             .map(|&(k, i)| (absorbed.keyframe(k), i));
         match target.markers.get_mut(&m.id) {
+            Some(_) if alignment.disagreeing.iter().any(|&(id, _)| id == m.id) => {
+                tracing::warn!(
+                    marker = m.id,
+                    "a marker both maps hold at different places is left out of the joined map"
+                );
+                absorbed.left_out_markers.push(m.id);
+            }
             Some(kept) => {
                 kept.observations.extend(sightings);
                 absorbed.fused_markers.push(m.id);
@@ -966,6 +997,14 @@ mod tests {
         assert_eq!(alignment.disagreeing.len(), 1);
         assert_eq!(alignment.disagreeing[0].0, 11);
         assert!(alignment.disagreeing[0].1 > 2.0);
+        // Joined, the target's marker 11 keeps its place and its own sightings only: the
+        // source's, 3 m away, would pull it there.
+        let mut joined = target.clone();
+        let absorbed = absorb(&mut joined, &source, &alignment);
+        assert_eq!(absorbed.fused_markers, vec![12, 13]);
+        assert_eq!(absorbed.left_out_markers, vec![11]);
+        assert_eq!(joined.markers[&11], target.markers[&11]);
+        assert_eq!(joined.markers[&12].observations.len(), 4);
     }
 
     #[test]
@@ -1149,6 +1188,36 @@ mod tests {
             align_by_markers(&target, &elsewhere),
             Err(NoAlignment::Unconfirmed { marker: 10, .. })
         ));
+        // The same texture and id, but the source holds marker 12 where the target holds 11,
+        // facing the same way (a room marked and furnished like another, one id printed
+        // twice): the markers of other ids refuse what the points confirm.
+        let next_to = Se3::new(UnitQuaternion::identity(), Vector3::new(0.5, 0.0, 0.0));
+        let mut twin = target.clone();
+        let mut eleven = twin.markers[&10].clone();
+        eleven.id = 11;
+        eleven.world_from_marker = eleven.world_from_marker.compose(&next_to);
+        twin.markers.insert(11, eleven);
+        let mut look_alike = source.clone();
+        let mut twelve = look_alike.markers[&10].clone();
+        twelve.id = 12;
+        twelve.world_from_marker = twelve.world_from_marker.compose(&next_to);
+        look_alike.markers.insert(12, twelve.clone());
+        assert!(matches!(
+            align_by_markers(&twin, &look_alike),
+            Err(NoAlignment::MarkerClash {
+                target_marker: 11,
+                source_marker: 12,
+                ..
+            })
+        ));
+        // Back to back (the two faces of a wall) they may share a spot.
+        let behind = Se3::new(
+            UnitQuaternion::from_euler_angles(0.0, std::f64::consts::PI, 0.0),
+            Vector3::zeros(),
+        );
+        twelve.world_from_marker = twelve.world_from_marker.compose(&behind);
+        look_alike.markers.insert(12, twelve);
+        assert!(align_by_markers(&twin, &look_alike).is_ok());
     }
 
     #[test]
