@@ -151,6 +151,61 @@ pub fn add_sightings(map: &mut Map, k: KeyFrameId, rig: &Rig) -> Vec<i32> {
     added
 }
 
+/// How far a marker seen from a pose found for a lost frame may be from where the map holds
+/// it, metres, and how near a mapped marker of another id it may not be: a detector pose from
+/// within [`MAX_MAPPING_DISTANCE_M`] is centimetres off, while a place that only looks like the
+/// mapped one puts the id metres away, or another id on its spot. The same tolerance as for a
+/// marker shared by two maps (`merge::MAX_CORNER_RMS_M`).
+pub const RELOCALISED_MARKER_M: f64 = 0.15;
+
+/// A marker that says a pose is wrong ([`contradicted_by`]).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Contradiction {
+    /// The id the frame saw, and the mapped marker it disagrees with (the same id placed
+    /// elsewhere, or another id on the spot).
+    pub seen: i32,
+    pub mapped: i32,
+    pub distance_m: f64,
+}
+
+/// Whether the markers a frame sees contradict `world_from_camera`, a pose found for it by
+/// its points (relocalisation): a sighting with a detector pose good enough to map from, placed
+/// by that pose, that lands more than [`RELOCALISED_MARKER_M`] from the mapped marker of its id,
+/// or within it of a mapped marker of another id facing the same way. Points and words cannot
+/// tell a room from one furnished alike; its markers can.
+pub fn contradicted_by(
+    map: &Map,
+    sightings: &[MarkerSighting],
+    world_from_camera: &Se3,
+) -> Option<Contradiction> {
+    let facing = |pose: &Se3| pose.rotation * Vector3::z();
+    for s in sightings {
+        let Some(camera_from_marker) = s.camera_from_marker.filter(is_mappable) else {
+            continue;
+        };
+        let seen = world_from_camera.compose(&camera_from_marker);
+        for m in map.markers.values().filter(|m| m.side_m == s.side_m) {
+            let distance_m = (m.world_from_marker.translation - seen.translation).norm();
+            // The same id anywhere but its place; another id on the spot, facing the same way
+            // (markers back to back on a wall's two faces may share a spot).
+            let contradicts = if m.id == s.id {
+                distance_m > RELOCALISED_MARKER_M
+            } else {
+                distance_m <= RELOCALISED_MARKER_M
+                    && facing(&m.world_from_marker).dot(&facing(&seen)) > 0.0
+            };
+            if contradicts {
+                return Some(Contradiction {
+                    seen: s.id,
+                    mapped: m.id,
+                    distance_m,
+                });
+            }
+        }
+    }
+    None
+}
+
 /// A pose for a frame that sees a mapped marker with a detector pose: the marker's map pose
 /// times the inverse of what the detector measured, from the nearest such marker (nearer
 /// markers give better detector poses). `None` when no sighting qualifies.
@@ -207,6 +262,48 @@ mod tests {
         let mut frame = Frame::from_parts(0, Vec::new(), Vec::new(), &rig());
         frame.markers = sightings;
         map.add_keyframe(frame, pose)
+    }
+
+    #[test]
+    fn markers_in_view_contradict_a_pose_of_a_place_that_looks_alike() {
+        let seven = Se3::new(
+            UnitQuaternion::from_euler_angles(0.0, std::f64::consts::PI, 0.1),
+            Vector3::new(0.3, -0.1, 2.0),
+        );
+        let metre_right = Se3::new(UnitQuaternion::identity(), Vector3::new(1.0, 0.0, 0.0));
+        let eight = metre_right.compose(&seven);
+        let camera = Se3::new(
+            UnitQuaternion::from_euler_angles(0.02, -0.1, 0.0),
+            Vector3::new(0.1, 0.0, 0.0),
+        );
+        let mut map = Map::default();
+        for (id, pose) in [(7, seven), (8, eight)] {
+            let k = keyframe_with(&mut map, camera, vec![sighting(&camera, &pose, id)]);
+            add_sightings(&mut map, k, &rig());
+        }
+        let sees_seven = [sighting(&camera, &seven, 7)];
+        assert_eq!(contradicted_by(&map, &sees_seven, &camera), None);
+        // The pose of a place a metre to the left that looks the same: 7 would hang on 8.
+        let look_alike = metre_right.compose(&camera);
+        let c = contradicted_by(&map, &sees_seven, &look_alike).unwrap();
+        assert_eq!((c.seen, c.mapped), (7, 7));
+        assert!((c.distance_m - 1.0).abs() < 1e-9, "{c:?}");
+        // Another id where 8 hangs, facing the same way.
+        let nine_on_eight = [sighting(&camera, &eight, 9)];
+        let c = contradicted_by(&map, &nine_on_eight, &camera).unwrap();
+        assert_eq!((c.seen, c.mapped), (9, 8));
+        // Back to back with 8, on the wall's other face: no contradiction.
+        let mut turned = map.clone();
+        let marker = turned.markers.get_mut(&8).unwrap();
+        marker.world_from_marker = marker.world_from_marker.compose(&Se3::new(
+            UnitQuaternion::from_euler_angles(0.0, std::f64::consts::PI, 0.0),
+            Vector3::zeros(),
+        ));
+        assert_eq!(contradicted_by(&turned, &nine_on_eight, &camera), None);
+        // Without a detector pose a sighting says nothing.
+        let mut posed_by_nothing = sees_seven.clone();
+        posed_by_nothing[0].camera_from_marker = None;
+        assert_eq!(contradicted_by(&map, &posed_by_nothing, &look_alike), None);
     }
 
     #[test]

@@ -393,7 +393,13 @@ impl Tracker {
             event = Some("camera changed: a new map starts".to_owned());
         }
         self.rig = Some(rig.clone());
+        // A lost frame's markers as detected, poses and all: they may refuse a place that
+        // only looks like where the robot is, whether or not they are to be mapped.
+        let mut seen = Vec::new();
         if self.config.marker_landmarks {
+            if self.state == TrackingState::Lost {
+                seen = sightings.clone();
+            }
             frame.markers = sightings;
             // A marker the map lacks is mapped only once two frames in a row saw its id: one
             // misread id would otherwise become a landmark in the wrong place.
@@ -456,12 +462,13 @@ impl Tracker {
                         &rig,
                         &self.local_map,
                         self.reference,
+                        &seen,
                         &mut self.statistics,
                     )
                 });
                 let mut event = "relocalised".to_owned();
                 if outcome.is_none() {
-                    if let Some((map, o)) = self.relocalise_elsewhere(writer, &frame, &rig) {
+                    if let Some((map, o)) = self.relocalise_elsewhere(writer, &frame, &rig, &seen) {
                         event = format!(
                             "relocalised in map {} (another's): map {} of the robot",
                             map.id().0,
@@ -524,6 +531,7 @@ impl Tracker {
         writer: &mut dyn MapWriter,
         frame: &Frame,
         rig: &Rig,
+        seen: &[MarkerSighting],
     ) -> Option<(Arc<SharedMap>, Tracked)> {
         let active = self.maps.last().map(|m| m.id());
         for map in writer.maps() {
@@ -537,6 +545,7 @@ impl Tracker {
                 frame,
                 rig,
                 &self.local_map,
+                seen,
                 &mut statistics,
             );
             if let Some(tracked) = tracked {

@@ -13,6 +13,7 @@ use crate::markers;
 use crate::matcher;
 use crate::places;
 use crate::rigid::{agrees, ransac_rigid, rigid_fit};
+use crate::sighting::MarkerSighting;
 use nalgebra::Vector3;
 use vsgraphs_optim::Se3;
 
@@ -59,6 +60,7 @@ impl Relocaliser {
         rig: &Rig,
         search: &LocalMapSearch,
         fallback_reference: Option<KeyFrameId>,
+        seen: &[MarkerSighting],
         statistics: &mut PointStatistics,
     ) -> Option<Tracked> {
         let keyframes = map.keyframes.len();
@@ -72,6 +74,7 @@ impl Relocaliser {
             search,
             self.candidates,
             fallback_reference,
+            seen,
             statistics,
         );
         if tracked.is_some() {
@@ -93,9 +96,16 @@ impl Relocaliser {
                 continue;
             }
             tries -= 1;
-            if let Some(tracked) =
-                try_keyframe(map, frame, rig, search, k, fallback_reference, statistics)
-            {
+            if let Some(tracked) = try_keyframe(
+                map,
+                frame,
+                rig,
+                search,
+                k,
+                fallback_reference,
+                seen,
+                statistics,
+            ) {
                 self.cursor = 0;
                 return Some(tracked);
             }
@@ -112,18 +122,30 @@ impl Relocaliser {
         frame: &Frame,
         rig: &Rig,
         search: &LocalMapSearch,
+        seen: &[MarkerSighting],
         statistics: &mut PointStatistics,
     ) -> Option<Tracked> {
         if map.keyframes.is_empty() {
             return None;
         }
-        recognise(map, frame, rig, search, self.candidates, None, statistics).0
+        recognise(
+            map,
+            frame,
+            rig,
+            search,
+            self.candidates,
+            None,
+            seen,
+            statistics,
+        )
+        .0
     }
 }
 
 /// The frame in `map` by a mapped marker in view, else against the (at most `candidates`)
-/// keyframes whose words the frame shares, each confirmed on the local map; with the
-/// keyframes the words gave.
+/// keyframes whose words the frame shares, each confirmed on the local map and by the markers
+/// `seen` ([`unless_contradicted`]); with the keyframes the words gave.
+#[allow(clippy::too_many_arguments)]
 fn recognise(
     map: &Map,
     frame: &Frame,
@@ -131,6 +153,7 @@ fn recognise(
     search: &LocalMapSearch,
     candidates: usize,
     fallback_reference: Option<KeyFrameId>,
+    seen: &[MarkerSighting],
     statistics: &mut PointStatistics,
 ) -> (Option<Tracked>, Vec<KeyFrameId>) {
     if let Some((id, world_from_camera)) = markers::pose_from_markers(map, &frame.markers) {
@@ -154,6 +177,7 @@ fn recognise(
             fallback_reference,
             statistics,
         );
+        let tracked = unless_contradicted(map, frame, seen, tracked);
         if tracked.is_some() {
             return (tracked, Vec::new());
         }
@@ -177,16 +201,24 @@ fn recognise(
         .take(candidates)
         .collect::<Vec<_>>();
     for &k in &by_words {
-        if let Some(tracked) =
-            try_keyframe(map, frame, rig, search, k, fallback_reference, statistics)
-        {
+        if let Some(tracked) = try_keyframe(
+            map,
+            frame,
+            rig,
+            search,
+            k,
+            fallback_reference,
+            seen,
+            statistics,
+        ) {
             return (Some(tracked), by_words);
         }
     }
     (None, by_words)
 }
 
-/// The frame against one keyframe, then the local map around it.
+/// The frame against one keyframe, then the local map around it, then the markers `seen`.
+#[allow(clippy::too_many_arguments)]
 fn try_keyframe(
     map: &Map,
     frame: &Frame,
@@ -194,6 +226,7 @@ fn try_keyframe(
     search: &LocalMapSearch,
     k: KeyFrameId,
     fallback_reference: Option<KeyFrameId>,
+    seen: &[MarkerSighting],
     statistics: &mut PointStatistics,
 ) -> Option<Tracked> {
     let matched = against_keyframe(map, frame, rig, k)?;
@@ -222,7 +255,31 @@ fn try_keyframe(
             "relocalisation failed on the local map"
         ),
     }
-    tracked
+    unless_contradicted(map, frame, seen, tracked)
+}
+
+/// A pose found for a lost frame, unless the markers the frame sees say it is another place
+/// that looks alike ([`markers::contradicted_by`]).
+fn unless_contradicted(
+    map: &Map,
+    frame: &Frame,
+    seen: &[MarkerSighting],
+    tracked: Option<Tracked>,
+) -> Option<Tracked> {
+    let tracked = tracked?;
+    match markers::contradicted_by(map, seen, &tracked.world_from_camera) {
+        None => Some(tracked),
+        Some(c) => {
+            tracing::debug!(
+                stamp_ns = frame.timestamp_ns,
+                seen = c.seen,
+                mapped = c.mapped,
+                distance_m = c.distance_m,
+                "a relocalisation refused by a marker in view"
+            );
+            None
+        }
+    }
 }
 
 /// The frame's pose against keyframe `k`: descriptor matches, RANSAC on their depths, then
