@@ -496,6 +496,17 @@ pub struct TrajectoryPose {
     pub world_from_camera: Pose,
 }
 
+/// One robot's poses in one of the server's maps, in the map's frame (`GET
+/// /api/v1/maps/{map_id}/trajectories`): robots whose maps were merged into it have theirs
+/// there too, moved as the maps were.
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+#[cfg_attr(feature = "openapi", derive(ToSchema))]
+pub struct RobotTrajectory {
+    pub robot: String,
+    /// Oldest first; `map` is the robot's own index of the map, as in its trajectory.
+    pub poses: Vec<TrajectoryPose>,
+}
+
 /// Where a marker's distance came from.
 #[derive(Debug, Clone, Copy, Serialize, Deserialize, PartialEq, Eq)]
 #[cfg_attr(feature = "openapi", derive(ToSchema))]

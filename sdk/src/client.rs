@@ -4,7 +4,7 @@ use serde::de::DeserializeOwned;
 use thiserror::Error;
 use vsgraphs_proto::api::{
     ApiError, DictionaryInfo, FrameDetections, Health, MapDoorway, MapMerge, MapSpace, MapSummary,
-    MapView, MapWall, RobotStatus, Route, SceneGraph, TrajectoryPose,
+    MapView, MapWall, RobotStatus, RobotTrajectory, Route, SceneGraph, TrajectoryPose,
 };
 use vsgraphs_proto::model::BuildingModel;
 
@@ -100,6 +100,12 @@ impl Client {
     /// Every merge of two of the server's maps so far, oldest first.
     pub async fn merges(&self) -> Result<Vec<MapMerge>, ClientError> {
         self.get("/api/v1/merges").await
+    }
+
+    /// Every robot's poses in one of the server's maps, in the map's frame.
+    pub async fn map_trajectories(&self, map_id: u32) -> Result<Vec<RobotTrajectory>, ClientError> {
+        self.get(&format!("/api/v1/maps/{map_id}/trajectories"))
+            .await
     }
 
     /// A map's rooms and corridors, by the map's id on the server.

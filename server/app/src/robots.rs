@@ -4,7 +4,7 @@
 //! read by the API. Locks are held for a few field updates only, never across I/O or `.await`.
 
 use crate::queue::FrameQueue;
-use std::collections::{BTreeMap, HashMap, VecDeque};
+use std::collections::{BTreeMap, BTreeSet, HashMap, VecDeque};
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex, RwLock};
 use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
@@ -270,6 +270,21 @@ impl RobotEntry {
                 }
             })
             .collect()
+    }
+
+    /// Its poses in the server's map `map`: those of each of its maps that is that map, or was
+    /// merged into it, refined as [`Robot::trajectory`] refines them.
+    pub fn trajectory_in(&self, map: u32) -> Vec<TrajectoryPose> {
+        let indices: BTreeSet<u32> = self
+            .state()
+            .maps
+            .iter()
+            .filter(|(_, snapshots)| snapshots.latest().id == map)
+            .map(|(&index, _)| index)
+            .collect();
+        let mut poses = self.trajectory();
+        poses.retain(|p| indices.contains(&p.map));
+        poses
     }
 
     pub fn set_presence(&self, presence: Presence) {

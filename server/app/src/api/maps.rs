@@ -10,7 +10,7 @@ use axum::Json;
 use vsgraphs_pipeline::{MapService, Published};
 use vsgraphs_proto::api::{
     ApiError, GraphEdge, GraphLayer, GraphNode, MapDoorway, MapMerge, MapSpace, MapSummary,
-    MapView, MapWall, Route, SceneGraph, SpaceKind, SpaceRef,
+    MapView, MapWall, RobotTrajectory, Route, SceneGraph, SpaceKind, SpaceRef,
 };
 use vsgraphs_slam::MapId;
 
@@ -50,6 +50,33 @@ pub(super) async fn list(State(state): State<ApiState>) -> Json<Vec<MapSummary>>
         })
         .collect();
     Json(summaries)
+}
+
+/// Every robot's poses in one map, in the map's frame: one trajectory per robot that has a
+/// pose there (robots whose maps were merged into it included), by robot id.
+#[utoipa::path(
+    get,
+    path = "/api/v1/maps/{map_id}/trajectories",
+    params(("map_id" = u32, Path, description = "The map's id on the server")),
+    responses((status = 200, body = [RobotTrajectory]), (status = 404, body = ApiError))
+)]
+pub(super) async fn trajectories(
+    State(state): State<ApiState>,
+    Path(map_id): Path<u32>,
+) -> Result<Json<Vec<RobotTrajectory>>, Failure> {
+    published(&state.maps, map_id)?;
+    let mut robots = state.registry.all();
+    robots.sort_by(|a, b| a.robot_id.cmp(&b.robot_id));
+    Ok(Json(
+        robots
+            .iter()
+            .map(|r| RobotTrajectory {
+                robot: r.robot_id.clone(),
+                poses: r.trajectory_in(map_id),
+            })
+            .filter(|t| !t.poses.is_empty())
+            .collect(),
+    ))
 }
 
 fn published(maps: &MapService, map_id: u32) -> Result<Published, Failure> {

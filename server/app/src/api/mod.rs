@@ -20,8 +20,8 @@ use vsgraphs_proto::api::{
     ApiError, DictionaryDoor, DictionaryInfo, DictionarySpace, DistanceSource, FrameCounters,
     FrameDetections, GraphEdge, GraphLayer, GraphNode, Health, MapDoorway, MapKeyframe, MapLoop,
     MapMarker, MapMerge, MapSpace, MapSummary, MapView, MapWall, MarkerDetection, MarkerPose,
-    MissingSpace, Pose, Presence, Rejection, RobotStatus, Route, SceneGraph, SpaceKind, SpaceRef,
-    Timing, TrackingState, TrackingStatus, TrajectoryPose,
+    MissingSpace, Pose, Presence, Rejection, RobotStatus, RobotTrajectory, Route, SceneGraph,
+    SpaceKind, SpaceRef, Timing, TrackingState, TrackingStatus, TrajectoryPose,
 };
 
 /// What the handlers read: the robots and the maps.
@@ -87,6 +87,7 @@ impl IntoResponse for Failure {
         maps::list,
         maps::merges,
         maps::one,
+        maps::trajectories,
         maps::model,
         maps::spaces,
         maps::space,
@@ -110,6 +111,7 @@ impl IntoResponse for Failure {
         TrackingState,
         Pose,
         TrajectoryPose,
+        RobotTrajectory,
         MapView,
         MapKeyframe,
         MapLoop,
@@ -166,6 +168,10 @@ pub fn router(registry: Arc<Registry>, maps: MapService) -> Router {
         .route("/api/v1/merges", get(maps::merges))
         .route("/api/v1/maps/{map_id}", get(maps::one))
         .route("/api/v1/maps/{map_id}/model", get(maps::model))
+        .route(
+            "/api/v1/maps/{map_id}/trajectories",
+            get(maps::trajectories),
+        )
         .route("/api/v1/maps/{map_id}/spaces", get(maps::spaces))
         .route("/api/v1/maps/{map_id}/spaces/{space}", get(maps::space))
         .route("/api/v1/maps/{map_id}/doorways", get(maps::doorways))
