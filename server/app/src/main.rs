@@ -167,6 +167,15 @@ fn print_offline(s: &vsgraphs_pipeline::offline::OfflineSummary) {
         "maps {}, keyframes {}, map points {}, markers {}",
         s.maps, s.keyframes, s.map_points, s.markers
     );
+    for view in s.map_views.iter().filter(|v| !v.loops.is_empty()) {
+        println!("loops closed in map {}: {}", view.id, view.loop_count);
+        for l in &view.loops {
+            println!(
+                "  keyframe {} to {}: {} points",
+                l.newer, l.older, l.inliers
+            );
+        }
+    }
     println!(
         "median ms per frame: pipeline {:.2} (decode {:.2}, markers {:.2}, features {:.2}, tracking {:.2}, mapping {:.2}); means per frame: mapping {:.2}, local BA {:.2} (wherever it was solved)",
         median(&s.pipeline_ms),
