@@ -155,6 +155,9 @@ pub struct TrackingStatus {
     pub frames_untracked: u64,
     /// The latest notable event: a map started, tracking lost, relocalised.
     pub last_event: Option<String>,
+    /// The newest notable events (at most [`TrackingStatus::RECENT_EVENTS`]), oldest first.
+    #[serde(default)]
+    pub recent_events: Vec<TrackingEvent>,
     /// Mean time per frame over the recent window, ms: ORB features, tracking, and local
     /// mapping (keyframe insertion, fusion and local bundle adjustment, on keyframes only).
     pub features_ms_mean: Option<f64>,
@@ -169,6 +172,19 @@ pub struct TrackingStatus {
     /// The room or corridor the latest pose lies in, as the map's semantic layer has it now.
     #[serde(default)]
     pub space: Option<SpaceRef>,
+}
+
+impl TrackingStatus {
+    /// How many events `recent_events` keeps: enough to tell how a robot came to be lost.
+    pub const RECENT_EVENTS: usize = 16;
+}
+
+/// A notable tracking event and the stamp of the frame it happened at (ns).
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+#[cfg_attr(feature = "openapi", derive(ToSchema))]
+pub struct TrackingEvent {
+    pub timestamp_ns: u64,
+    pub event: String,
 }
 
 /// A room or corridor named by its map's id for it and its name.

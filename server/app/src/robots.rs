@@ -11,7 +11,7 @@ use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
 use vsgraphs_pipeline::{FrameTracking, Published, Snapshots};
 use vsgraphs_proto::api::{
     self, FrameCounters, FrameDetections, MapView, Presence, RobotStatus, SpaceRef, Timing,
-    TrackingStatus, TrajectoryPose,
+    TrackingEvent, TrackingStatus, TrajectoryPose,
 };
 use vsgraphs_slam::Anchor;
 
@@ -155,6 +155,7 @@ impl RobotEntry {
             frames_tracked: 0,
             frames_untracked: 0,
             last_event: None,
+            recent_events: Vec::new(),
             features_ms_mean: None,
             tracking_ms_mean: None,
             mapping_ms_mean: None,
@@ -189,8 +190,18 @@ impl RobotEntry {
             // By the robot's index of the map: a map another robot started carries its label.
             state.maps.insert(result.map as u32, snapshots.clone());
         }
+        let note = |status: &mut TrackingStatus, event: String| {
+            if status.recent_events.len() == TrackingStatus::RECENT_EVENTS {
+                status.recent_events.remove(0);
+            }
+            status.recent_events.push(TrackingEvent {
+                timestamp_ns,
+                event: event.clone(),
+            });
+            status.last_event = Some(event);
+        };
         if let Some(error) = &tracking.error {
-            status.last_event = Some(format!("error: {error}"));
+            note(&mut status, format!("error: {error}"));
         }
         match tracking.result.as_ref() {
             Some(result) => {
@@ -198,7 +209,7 @@ impl RobotEntry {
                 status.inliers = result.inliers as u64;
                 status.markers_in_view = result.markers_in_view as u64;
                 if let Some(event) = &result.event {
-                    status.last_event = Some(event.clone());
+                    note(&mut status, event.clone());
                 }
                 let now = Instant::now();
                 let ms = |d: Duration| d.as_secs_f64() * 1e3;

@@ -21,7 +21,7 @@ use vsgraphs_proto::api::{
     FrameDetections, GraphEdge, GraphLayer, GraphNode, Health, MapDoorway, MapKeyframe, MapLoop,
     MapMarker, MapMerge, MapSpace, MapSummary, MapView, MapWall, MarkerDetection, MarkerPose,
     MissingSpace, Pose, Presence, Rejection, RobotStatus, RobotTrajectory, Route, SceneGraph,
-    SpaceKind, SpaceRef, Timing, TrackingState, TrackingStatus, TrajectoryPose,
+    SpaceKind, SpaceRef, Timing, TrackingEvent, TrackingState, TrackingStatus, TrajectoryPose,
 };
 
 /// What the handlers read: the robots and the maps.
@@ -108,6 +108,7 @@ impl IntoResponse for Failure {
         MarkerPose,
         DistanceSource,
         TrackingStatus,
+        TrackingEvent,
         TrackingState,
         Pose,
         TrajectoryPose,
