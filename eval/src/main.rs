@@ -200,6 +200,25 @@ enum Command {
         #[arg(long)]
         json: bool,
     },
+    /// Every robot of a simulated scenario streams at once, at its walk's pace, into one set of
+    /// maps that merge on the map service's thread as a live server's do; prints each merge's
+    /// time and tracking's per-frame time during merges against the rest.
+    MergeCost {
+        /// two_robots, a scenario JSON file, or any one-robot scenario with --restart.
+        scenario: String,
+        #[arg(long, default_value_t = 1)]
+        seed: u64,
+        /// A server configuration file (TOML), as for `scenario`.
+        #[arg(long)]
+        config: Option<PathBuf>,
+        /// `STOP:RESUME` for every robot, as for `scenario`: the restarted robot's new map
+        /// merges into its first while it tracks.
+        #[arg(long, value_parser = parse_restart)]
+        restart: Option<(usize, usize)>,
+        /// Print JSON instead of the table.
+        #[arg(long)]
+        json: bool,
+    },
     /// Train the visual vocabulary of place recognition on frames the simulator renders (its
     /// own textures, so the file may be shipped), and write it (the server's is
     /// server/vision/vocabulary/orb-k10-l4.voc).
@@ -331,6 +350,35 @@ fn main() -> anyhow::Result<()> {
                 println!("{}", serde_json::to_string_pretty(&report)?);
             } else {
                 semantics::print_table(&report);
+            }
+        }
+        Command::MergeCost {
+            scenario,
+            seed,
+            config,
+            restart,
+            json,
+        } => {
+            let config = match config {
+                Some(path) => PipelineConfig::load(&path)?,
+                None => PipelineConfig::default(),
+            };
+            let scenario = Scenario::load(&scenario)?;
+            let options = ScenarioOptions {
+                seed,
+                restart,
+                ..ScenarioOptions::default()
+            };
+            let run =
+                vsgraphs_eval::merge_cost::run(&config, &scenario, &options, |r, done, total| {
+                    if done % 250 == 0 || done == total {
+                        eprintln!("robot {r}: {done}/{total} frames");
+                    }
+                })?;
+            if json {
+                println!("{}", serde_json::to_string_pretty(&run)?);
+            } else {
+                vsgraphs_eval::merge_cost::print(&run);
             }
         }
         Command::Scenario {

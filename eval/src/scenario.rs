@@ -320,7 +320,7 @@ pub fn run(
 /// One walk rendered (on another thread, a few frames ahead), encoded as the robot sends it
 /// and run through the pipeline, into `maps` when given (else a service of its own).
 #[allow(clippy::too_many_arguments)]
-fn run_walk(
+pub(crate) fn run_walk(
     config: &PipelineConfig,
     renderer: &Renderer,
     walk: &Walk,
@@ -379,7 +379,7 @@ fn run_walk(
 }
 
 /// A server's maps as the configuration sets them up.
-fn service_for(config: &PipelineConfig, dictionary: Option<Dictionary>) -> MapService {
+pub(crate) fn service_for(config: &PipelineConfig, dictionary: Option<Dictionary>) -> MapService {
     MapService::with_semantics(config.semantics.enabled, dictionary)
         .with_whole_map_optimisation(config.semantics.optimise_every_keyframes)
         .with_live_merges(config.atlas.merge_maps)
@@ -549,6 +549,43 @@ fn shifted(trajectory: &Trajectory, by: f64, into: &mut Trajectory) {
     for (stamp, pose) in trajectory.stamps.iter().zip(&trajectory.poses) {
         into.push(stamp + by, *pose);
     }
+}
+
+/// Every robot of `scenario`, one after the other, mapped into one server's maps (set up as
+/// `config` has them, live merges included) and flushed; the maps and each robot's summary.
+/// For tests of what is done with maps afterwards (files, the store).
+pub fn mapped(
+    config: &PipelineConfig,
+    scenario: &Scenario,
+    options: &ScenarioOptions,
+) -> anyhow::Result<(MapService, Vec<OfflineSummary>)> {
+    let building = Building::from_plan(&scenario.plan).context("building the plan")?;
+    let renderer = Renderer::new(
+        &scenario.plan,
+        &building,
+        scenario.render.clone(),
+        options.seed,
+    );
+    let dictionary = dictionary_for(&building, options.dictionary)?;
+    let service = service_for(config, dictionary.clone());
+    let mut summaries = Vec::new();
+    for walk in scenario.walks().context("planning the walks")? {
+        let total = options
+            .limit
+            .map_or(walk.times.len(), |l| l.min(walk.times.len()));
+        let (summary, _) = run_walk(
+            config,
+            &renderer,
+            &walk,
+            total,
+            options,
+            dictionary.as_ref(),
+            Some(&service),
+            |_, _| {},
+        )?;
+        summaries.push(summary);
+    }
+    Ok((service, summaries))
 }
 
 /// Runs every robot of `scenario` (see [`TogetherRun`]); `progress(robot, done, total)`.
@@ -808,7 +845,7 @@ fn print_semantics(report: Option<&SemanticReport>, error: Option<&str>) {
 
 /// The semantic dictionary the simulator writes for the building, as a robot's operator would
 /// give the server.
-fn dictionary_for(
+pub(crate) fn dictionary_for(
     building: &Building,
     choice: DictionaryChoice,
 ) -> anyhow::Result<Option<Dictionary>> {

@@ -101,7 +101,11 @@ async fn live_tracking_matches_the_offline_run() {
     assert_eq!(tracking.keyframes as usize, summary.keyframes);
     assert!(tracking.features_ms_mean.is_some());
     // The map's start is the one event of a walk tracked throughout, at the first frame's stamp.
-    let events: Vec<&str> = tracking.recent_events.iter().map(|e| e.event.as_str()).collect();
+    let events: Vec<&str> = tracking
+        .recent_events
+        .iter()
+        .map(|e| e.event.as_str())
+        .collect();
     assert_eq!(events.len(), 1, "{events:?}");
     assert!(events[0].starts_with("map 0 started"), "{events:?}");
     let live = test.client.trajectory("kinect").await.unwrap();

@@ -44,7 +44,20 @@ pub struct OfflineSummary {
     pub tracking_cpu_ms: Vec<f64>,
     pub mapping_ms: Vec<f64>,
     pub local_ba_ms: Vec<f64>,
+    /// Each tracked frame's times with the wall clock at which its processing ended, to set
+    /// them beside what the server did meanwhile (a merge on another thread).
+    pub tracked_times: Vec<FrameTimes>,
     pub elapsed: Duration,
+}
+
+/// One tracked frame's times, ms, and when its processing ended (ns since the Unix epoch).
+#[derive(Debug, Clone, Copy)]
+pub struct FrameTimes {
+    pub at_ns: u64,
+    /// The whole pipeline: decoding, markers, features, tracking and the wait for mapping.
+    pub pipeline_ms: f64,
+    pub tracking_ms: f64,
+    pub tracking_cpu_ms: f64,
 }
 
 /// Median of a list of times (0 when empty).
@@ -256,6 +269,12 @@ pub fn run_frames(
                 summary.tracking_cpu_ms.push(ms(r.times.tracking_cpu));
                 summary.mapping_ms.push(ms(r.times.mapping));
                 summary.local_ba_ms.push(ms(r.times.local_ba));
+                summary.tracked_times.push(FrameTimes {
+                    at_ns: now_ns(),
+                    pipeline_ms: ms(processed.processing),
+                    tracking_ms: ms(r.times.tracking),
+                    tracking_cpu_ms: ms(r.times.tracking_cpu),
+                });
                 if let Some(event) = &r.event {
                     summary
                         .events
@@ -311,6 +330,13 @@ pub fn run_frames(
             anchors,
         },
     ))
+}
+
+/// The wall clock, ns since the Unix epoch (as merge reports carry it).
+fn now_ns() -> u64 {
+    std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .map_or(0, |d| d.as_nanos() as u64)
 }
 
 /// Moves the poses and anchors of a robot's map into the map it was merged into.
