@@ -161,6 +161,45 @@ impl Client {
         self.get(&format!("/api/v1/maps/{map_id}/graph")).await
     }
 
+    /// Map `map_id` as a map file, for [`Client::import_map`] on this server or another.
+    pub async fn export_map(&self, map_id: u32) -> Result<Vec<u8>, ClientError> {
+        let url = self.url(&format!("/api/v1/maps/{map_id}/file"))?;
+        let name = url.to_string();
+        let http = |source| ClientError::Http {
+            url: name.clone(),
+            source,
+        };
+        let response = self.http.get(url).send().await.map_err(http)?;
+        let status = response.status();
+        if status.is_success() {
+            return Ok(response.bytes().await.map_err(http)?.to_vec());
+        }
+        let text = response.text().await.map_err(http)?;
+        Err(match serde_json::from_str::<ApiError>(&text) {
+            Ok(body) => ClientError::Api {
+                url: name,
+                status: status.as_u16(),
+                body,
+            },
+            Err(_) => ClientError::Unexpected {
+                url: name,
+                status: status.as_u16(),
+                text,
+            },
+        })
+    }
+
+    /// Adds the map in a map file (from [`Client::export_map`]) to the server's maps.
+    pub async fn import_map(&self, file: Vec<u8>) -> Result<MapSummary, ClientError> {
+        let url = self.url("/api/v1/maps")?;
+        let request = self
+            .http
+            .post(url.clone())
+            .header("content-type", "application/octet-stream")
+            .body(file);
+        self.send(url, request).await
+    }
+
     /// The server's URL of `path`.
     fn url(&self, path: &str) -> Result<reqwest::Url, ClientError> {
         let url = format!("{}{path}", self.base);

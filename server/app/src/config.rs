@@ -47,12 +47,16 @@ impl Default for Config {
 #[serde(default, deny_unknown_fields)]
 pub struct HttpConfig {
     pub listen: SocketAddr,
+    /// Largest map file `POST /api/v1/maps` takes, bytes: a building two robots mapped in a
+    /// few minutes is about 50 MB, an hour of one robot a few hundred.
+    pub max_map_file_bytes: usize,
 }
 
 impl Default for HttpConfig {
     fn default() -> Self {
         Self {
             listen: SocketAddr::from(([127, 0, 0, 1], 8080)),
+            max_map_file_bytes: 512 << 20,
         }
     }
 }

@@ -53,7 +53,8 @@ impl Server {
             .with_live_merges(config.atlas.merge_maps)
             // A live robot's worker must not wait for a merge (hundreds of ms on big maps).
             .with_background_merges(true)
-            .with_loop_closing(config.atlas.close_loops);
+            .with_loop_closing(config.atlas.close_loops)
+            .with_mapping(config.tracking.tracker().mapping());
         vsgraphs_pipeline::FrameProcessor::new(
             &config.markers,
             &config.tracking,
@@ -78,7 +79,12 @@ impl Server {
         let ingest = Ingest::start(&session, registry.clone(), config.clone(), maps.clone())
             .await
             .map_err(|e| anyhow::anyhow!("subscribing on zenoh: {e}"))?;
-        let app = api::router(registry.clone(), maps.clone()).merge(web::router());
+        let app = api::router(
+            registry.clone(),
+            maps.clone(),
+            config.http.max_map_file_bytes,
+        )
+        .merge(web::router());
         let (stop_http, stopped) = oneshot::channel();
         let http = tokio::spawn(async move {
             axum::serve(listener, app)

@@ -90,6 +90,23 @@ enum Command {
     },
     /// Print the effective configuration as TOML.
     PrintConfig,
+    /// Save one map of a running server as a map file (everything the map holds).
+    Export {
+        /// The map's id on the server (`GET /api/v1/maps` lists them).
+        map_id: u32,
+        /// The file to write.
+        file: PathBuf,
+        /// The server's HTTP address.
+        #[arg(long, default_value = "http://127.0.0.1:8080")]
+        server: String,
+    },
+    /// Add the map in a map file (from `export`) to a running server's maps.
+    Import {
+        file: PathBuf,
+        /// The server's HTTP address.
+        #[arg(long, default_value = "http://127.0.0.1:8080")]
+        server: String,
+    },
     /// Act as a robot that streams rendered markers (for demos and deployment checks).
     SimulateMarkers {
         #[arg(long, default_value = "marker-cam")]
@@ -101,6 +118,30 @@ enum Command {
         #[arg(long, default_value_t = 15.0)]
         rate: f64,
     },
+}
+
+/// Waits for Ctrl-C or SIGTERM (what service managers and container runtimes send), and says
+/// which came: both stop the server in order (robots' workers drained, maps' writers ended).
+async fn stop_signal() -> anyhow::Result<&'static str> {
+    #[cfg(unix)]
+    {
+        use tokio::signal::unix::{signal, SignalKind};
+        let mut terminate = signal(SignalKind::terminate()).context("listening for SIGTERM")?;
+        tokio::select! {
+            interrupted = tokio::signal::ctrl_c() => {
+                interrupted.context("waiting for Ctrl-C")?;
+                Ok("interrupted")
+            }
+            _ = terminate.recv() => Ok("SIGTERM"),
+        }
+    }
+    #[cfg(not(unix))]
+    {
+        tokio::signal::ctrl_c()
+            .await
+            .context("waiting for Ctrl-C")?;
+        Ok("interrupted")
+    }
 }
 
 fn parse_refinement(s: &str) -> Result<CornerRefinement, String> {
@@ -228,11 +269,10 @@ async fn main() -> anyhow::Result<()> {
                 "vsgraphs server: page and API at http://{}/ (Ctrl-C stops)",
                 server.http_addr()
             );
-            tokio::signal::ctrl_c()
-                .await
-                .context("waiting for Ctrl-C")?;
-            eprintln!("stopping");
+            let signal = stop_signal().await?;
+            eprintln!("{signal}: stopping");
             server.stop().await?;
+            eprintln!("stopped");
         }
         Command::Detect {
             image,
@@ -309,6 +349,34 @@ async fn main() -> anyhow::Result<()> {
             }
         }
         Command::PrintConfig => print!("{}", toml::to_string_pretty(&config)?),
+        Command::Export {
+            map_id,
+            file,
+            server,
+        } => {
+            let client = vsgraphs_sdk::Client::new(&server);
+            let bytes = client.export_map(map_id).await?;
+            std::fs::write(&file, &bytes).with_context(|| format!("writing {}", file.display()))?;
+            println!(
+                "map {map_id}: {} bytes written to {}",
+                bytes.len(),
+                file.display()
+            );
+        }
+        Command::Import { file, server } => {
+            let bytes =
+                std::fs::read(&file).with_context(|| format!("reading {}", file.display()))?;
+            let client = vsgraphs_sdk::Client::new(&server);
+            let map = client.import_map(bytes).await?;
+            println!(
+                "{} imported as map {}: {} keyframes, {} points, {} markers",
+                file.display(),
+                map.id,
+                map.keyframes,
+                map.points,
+                map.markers
+            );
+        }
         Command::SimulateMarkers {
             robot_id,
             connect,

@@ -64,6 +64,9 @@ struct Inner {
     /// keyframes in a row agree.
     places_seen: Mutex<BTreeMap<(MapId, MapId), Sightings>>,
     semantics: Arc<RwLock<Semantics>>,
+    /// How maps the service starts itself (imported, read from the store) are mapped; the
+    /// default tracker's settings unless set ([`MapService::with_mapping`]).
+    mapping: Mutex<Option<MappingConfig>>,
 }
 
 /// Merge look-ups waiting for the service's merge thread.
@@ -96,6 +99,15 @@ struct Sightings {
     other_from_here: vsgraphs_slam::Se3,
     agreeing: usize,
     missed: usize,
+}
+
+/// Why a map file did not become a map.
+#[derive(Debug, thiserror::Error)]
+pub enum ImportError {
+    #[error(transparent)]
+    File(#[from] vsgraphs_slam::archive::ArchiveError),
+    #[error(transparent)]
+    Writer(#[from] TrackError),
 }
 
 /// Two maps that looked like one place but were not merged, and why: a place recognised by
@@ -555,6 +567,35 @@ impl MapService {
         }
     }
 
+    /// Map `id` as the bytes of a map file ([`vsgraphs_slam::archive`]): as its writer left
+    /// it after its last request (the map is read between two).
+    pub fn export(&self, id: MapId) -> Result<Vec<u8>, TrackError> {
+        let entry = self.entry(id)?;
+        let map = entry.map.read();
+        Ok(vsgraphs_slam::archive::encode(&map))
+    }
+
+    /// How the maps the service starts itself (imported ones) are mapped: as the server's
+    /// robots map theirs.
+    pub fn with_mapping(self, settings: MappingConfig) -> Self {
+        *lock(&self.inner.mapping) = Some(settings);
+        self
+    }
+
+    /// A map file read back as a new map of the service (its id is returned), mapped from
+    /// then on like any other: robots that lose track relocalise in it and maps that show its
+    /// places merge with it.
+    pub fn import(&self, bytes: &[u8]) -> Result<MapId, ImportError> {
+        let map = vsgraphs_slam::archive::decode(bytes)?;
+        let keyframes = map.live_keyframes();
+        let settings = lock(&self.inner.mapping)
+            .clone()
+            .unwrap_or_else(|| vsgraphs_slam::TrackerConfig::default().mapping());
+        let shared = self.start_map(map, &settings, 0)?;
+        tracing::info!(map = shared.id().0, keyframes, "map imported");
+        Ok(shared.id())
+    }
+
     /// Every merge so far, oldest first.
     pub fn merges(&self) -> Vec<MergeReport> {
         lock(&self.inner.merge_log).clone()
@@ -820,6 +861,48 @@ impl MapService {
         }
     }
 
+    /// Adds `map` under a new id, with a writer that maps with `settings`; a map with
+    /// keyframes is published at once, its semantic layer moments later.
+    fn start_map(
+        &self,
+        map: Map,
+        settings: &MappingConfig,
+        label: usize,
+    ) -> Result<Arc<SharedMap>, TrackError> {
+        let id = MapId(self.inner.next_id.fetch_add(1, Ordering::Relaxed));
+        let view = model::map_view(&map, id, label, 0, None, None);
+        let filled = !map.keyframes.is_empty();
+        let map = Arc::new(SharedMap::with_map(id, map));
+        let snapshot = Arc::new(Mutex::new(Published {
+            view: Arc::new(view),
+            semantics: Arc::default(),
+        }));
+        let (sender, commands) = mpsc::channel();
+        let writer = Writer {
+            map: map.clone(),
+            mapper: LocalMapper::new(settings.clone()),
+            label,
+            snapshot: snapshot.clone(),
+            semantics: self.inner.semantics.clone(),
+            layer_behind: 0,
+        };
+        let thread = std::thread::Builder::new()
+            .name(format!("map-{}", id.0))
+            .spawn(move || writer.run(commands))
+            .map_err(|e| TrackError::Writer(format!("cannot start the map's writer: {e}")))?;
+        if filled {
+            let _ = sender.send(Command::Refresh);
+        }
+        let entry = MapEntry {
+            map: map.clone(),
+            commands: Mutex::new(Some(sender)),
+            snapshot,
+            thread: Mutex::new(Some(thread)),
+        };
+        lock(&self.inner.maps).insert(id, Arc::new(entry));
+        Ok(map)
+    }
+
     fn entry(&self, id: MapId) -> Result<Arc<MapEntry>, TrackError> {
         lock(&self.inner.maps)
             .get(&id)
@@ -913,50 +996,27 @@ impl MapWriter for MapService {
         settings: &MappingConfig,
         label: usize,
     ) -> Result<Arc<SharedMap>, TrackError> {
-        let id = MapId(self.inner.next_id.fetch_add(1, Ordering::Relaxed));
-        let map = Arc::new(SharedMap::new(id));
-        let snapshot = Arc::new(Mutex::new(Published {
-            view: Arc::new(model::map_view(&Map::default(), id, label, 0, None, None)),
-            semantics: Arc::default(),
-        }));
-        let (sender, commands) = mpsc::channel();
-        let writer = Writer {
-            map: map.clone(),
-            mapper: LocalMapper::new(settings.clone()),
-            label,
-            snapshot: snapshot.clone(),
-            semantics: self.inner.semantics.clone(),
-            layer_behind: 0,
-        };
-        let thread = std::thread::Builder::new()
-            .name(format!("map-{}", id.0))
-            .spawn(move || writer.run(commands))
-            .map_err(|e| TrackError::Writer(format!("cannot start the map's writer: {e}")))?;
-        let entry = MapEntry {
-            map: map.clone(),
-            commands: Mutex::new(Some(sender)),
-            snapshot,
-            thread: Mutex::new(Some(thread)),
-        };
-        lock(&self.inner.maps).insert(id, Arc::new(entry));
-        Ok(map)
+        self.start_map(Map::default(), settings, label)
     }
 
     fn request(&mut self, map: &SharedMap, request: MapRequest) -> Result<MapReply, TrackError> {
-        if let Some(moved) = self.moved(map) {
-            // A merge raced the robot's frame: its next frame follows the map.
-            return Err(TrackError::Writer(format!(
-                "map {} was merged into map {} during this frame",
-                map.id().0,
-                moved.into.id().0
-            )));
+        let merged = |service: &Self| {
+            service.moved(map).map(|moved| TrackError::MapMerged {
+                from: map.id(),
+                into: moved.into.id(),
+            })
+        };
+        // A merge raced the robot's frame: the tracker follows the map and tracks it again.
+        if let Some(e) = merged(self) {
+            return Err(e);
         }
         let entry = self.entry(map.id())?;
         if !std::ptr::eq(entry.map.as_ref(), map) {
             // A map of another service that happens to share the id.
             return Err(TrackError::UnknownMap(map.id()));
         }
-        Self::ask(&entry, request)
+        // A map merged away stops its writer with the request unanswered.
+        Self::ask(&entry, request).map_err(|e| merged(self).unwrap_or(e))
     }
 }
 

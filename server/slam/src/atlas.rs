@@ -29,6 +29,14 @@ impl SharedMap {
         }
     }
 
+    /// A map read back (from a file or the store) under a new id.
+    pub fn with_map(id: MapId, map: Map) -> Self {
+        Self {
+            id,
+            map: RwLock::new(map),
+        }
+    }
+
     pub fn id(&self) -> MapId {
         self.id
     }

@@ -18,6 +18,10 @@ pub enum TrackError {
     UnknownMap(MapId),
     #[error("the map's writer: {0}")]
     Writer(String),
+    /// The map was merged into another while the request waited: the tracker follows it and
+    /// tracks the frame again there.
+    #[error("map {} was merged into map {} during the frame", .from.0, .into.0)]
+    MapMerged { from: MapId, into: MapId },
     #[error("the maps were not merged: {0}")]
     Merge(#[from] crate::merge::NoAlignment),
 }

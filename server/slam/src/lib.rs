@@ -12,6 +12,7 @@
 //! [`triangulation`], [`local_mapping`] (a map's writer), [`merge`] (two maps of one place made
 //! one), [`atlas`] (maps shared between writer and trackers) and [`tracking`].
 
+pub mod archive;
 pub mod atlas;
 pub mod error;
 pub mod frame;

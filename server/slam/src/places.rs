@@ -47,9 +47,9 @@ const RANSAC_SEED: u64 = 0x5EED_1005;
 #[derive(Clone, Debug, Default)]
 pub struct PlaceIndex {
     /// Keyframes holding each word, in insertion order.
-    by_word: Vec<Vec<KeyFrameId>>,
+    pub(crate) by_word: Vec<Vec<KeyFrameId>>,
     /// Each keyframe's bag, by id (`None`: not indexed or removed).
-    bags: Vec<Option<BagOfWords>>,
+    pub(crate) bags: Vec<Option<BagOfWords>>,
 }
 
 /// A keyframe that may show the queried place.

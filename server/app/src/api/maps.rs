@@ -5,8 +5,10 @@
 
 use super::{ApiState, Failure};
 use axum::extract::{Path, Query, State};
-use axum::http::StatusCode;
+use axum::http::{header, StatusCode};
+use axum::response::IntoResponse;
 use axum::Json;
+use vsgraphs_pipeline::maps::ImportError;
 use vsgraphs_pipeline::{MapService, Published};
 use vsgraphs_proto::api::{
     ApiError, GraphEdge, GraphLayer, GraphNode, MapDoorway, MapMerge, MapSpace, MapSummary,
@@ -23,33 +25,103 @@ pub(super) async fn merges(State(state): State<ApiState>) -> Json<Vec<MapMerge>>
 /// Every map of the server, with the robots that mapped in it.
 #[utoipa::path(get, path = "/api/v1/maps", responses((status = 200, body = [MapSummary])))]
 pub(super) async fn list(State(state): State<ApiState>) -> Json<Vec<MapSummary>> {
-    let robots = state.registry.all();
     let summaries = state
         .maps
         .all()
         .into_iter()
-        .map(|(id, snapshots)| {
-            let view = snapshots.latest();
-            let count = |kind| view.spaces.iter().filter(|s| s.kind == kind).count() as u64;
-            MapSummary {
-                id: id.0,
-                robots: robots
-                    .iter()
-                    .filter(|r| r.maps().iter().any(|m| m.id == id.0))
-                    .map(|r| r.robot_id.clone())
-                    .collect(),
-                updated_ns: view.updated_ns,
-                keyframes: view.keyframe_count,
-                points: view.point_count,
-                markers: view.marker_count,
-                walls: view.walls.len() as u64,
-                doorways: view.doorways.len() as u64,
-                rooms: count(SpaceKind::Room),
-                corridors: count(SpaceKind::Corridor),
-            }
-        })
+        .map(|(id, snapshots)| summary(&state, id, &snapshots.latest()))
         .collect();
     Json(summaries)
+}
+
+fn summary(state: &ApiState, id: MapId, view: &MapView) -> MapSummary {
+    let count = |kind| view.spaces.iter().filter(|s| s.kind == kind).count() as u64;
+    MapSummary {
+        id: id.0,
+        robots: state
+            .registry
+            .all()
+            .iter()
+            .filter(|r| r.maps().iter().any(|m| m.id == id.0))
+            .map(|r| r.robot_id.clone())
+            .collect(),
+        updated_ns: view.updated_ns,
+        keyframes: view.keyframe_count,
+        points: view.point_count,
+        markers: view.marker_count,
+        walls: view.walls.len() as u64,
+        doorways: view.doorways.len() as u64,
+        rooms: count(SpaceKind::Room),
+        corridors: count(SpaceKind::Corridor),
+    }
+}
+
+/// One map as a map file (`vsgraphs-server export`): everything the map holds, bit for bit,
+/// for `POST /api/v1/maps` on this server or another.
+#[utoipa::path(
+    get,
+    path = "/api/v1/maps/{map_id}/file",
+    params(("map_id" = u32, Path, description = "The map's id on the server")),
+    responses(
+        (status = 200, description = "The map file", content_type = "application/octet-stream"),
+        (status = 404, body = ApiError)
+    )
+)]
+pub(super) async fn file(
+    State(state): State<ApiState>,
+    Path(map_id): Path<u32>,
+) -> Result<impl IntoResponse, Failure> {
+    // Writing a large map takes tens of milliseconds: off the runtime's threads.
+    let bytes = tokio::task::spawn_blocking(move || state.maps.export(MapId(map_id)))
+        .await
+        .map_err(|e| Failure::internal(format!("exporting map {map_id}: {e}")))?
+        .map_err(|_| Failure::not_found("map_not_found", format!("there is no map {map_id}")))?;
+    Ok((
+        [
+            (header::CONTENT_TYPE, "application/octet-stream".to_owned()),
+            (
+                header::CONTENT_DISPOSITION,
+                format!("attachment; filename=\"map-{map_id}.vsgmap\""),
+            ),
+        ],
+        bytes,
+    ))
+}
+
+/// Adds the map in a map file (from `GET /api/v1/maps/{map_id}/file`) as a new map of the
+/// server: robots that lose track relocalise in it, maps that show its places merge with it.
+/// Its rooms and corridors follow moments later.
+#[utoipa::path(
+    post,
+    path = "/api/v1/maps",
+    request_body(content = Vec<u8>, description = "A map file", content_type = "application/octet-stream"),
+    responses(
+        (status = 201, body = MapSummary),
+        (status = 400, body = ApiError, description = "not a map file, or a damaged one"),
+        (status = 413, description = "larger than `[http] max_map_file_bytes`")
+    )
+)]
+pub(super) async fn import(
+    State(state): State<ApiState>,
+    body: axum::body::Bytes,
+) -> Result<(StatusCode, Json<MapSummary>), Failure> {
+    let maps = state.maps.clone();
+    let imported = tokio::task::spawn_blocking(move || maps.import(&body))
+        .await
+        .map_err(|e| Failure::internal(format!("importing a map: {e}")))?;
+    let id = imported.map_err(|e| match e {
+        ImportError::File(e) => Failure {
+            status: StatusCode::BAD_REQUEST,
+            code: "bad_map_file",
+            message: e.to_string(),
+        },
+        ImportError::Writer(e) => Failure::internal(e.to_string()),
+    })?;
+    let view = state
+        .maps
+        .snapshot(id)
+        .ok_or_else(|| Failure::internal(format!("map {} went as it came", id.0)))?;
+    Ok((StatusCode::CREATED, Json(summary(&state, id, &view))))
 }
 
 /// Every robot's poses in one map, in the map's frame: one trajectory per robot that has a

@@ -8,7 +8,7 @@ pub mod dictionary;
 pub mod maps;
 
 use crate::robots::Registry;
-use axum::extract::{FromRef, Path, Query, State};
+use axum::extract::{DefaultBodyLimit, FromRef, Path, Query, State};
 use axum::http::StatusCode;
 use axum::response::{IntoResponse, Response};
 use axum::routing::get;
@@ -46,6 +46,14 @@ pub struct Failure {
 }
 
 impl Failure {
+    pub fn internal(message: impl Into<String>) -> Self {
+        Self {
+            status: StatusCode::INTERNAL_SERVER_ERROR,
+            code: "internal",
+            message: message.into(),
+        }
+    }
+
     pub fn not_found(code: &'static str, message: impl Into<String>) -> Self {
         Self {
             status: StatusCode::NOT_FOUND,
@@ -85,6 +93,8 @@ impl IntoResponse for Failure {
         dictionary::put,
         dictionary::delete,
         maps::list,
+        maps::import,
+        maps::file,
         maps::merges,
         maps::one,
         maps::trajectories,
@@ -145,8 +155,8 @@ pub fn openapi_json() -> String {
         .expect("the OpenAPI document serialises")
 }
 
-/// The `/api/v1` routes.
-pub fn router(registry: Arc<Registry>, maps: MapService) -> Router {
+/// The `/api/v1` routes; map files up to `max_map_file_bytes` are taken.
+pub fn router(registry: Arc<Registry>, maps: MapService, max_map_file_bytes: usize) -> Router {
     Router::new()
         .route("/api/v1/health", get(health))
         .route("/api/v1/robots", get(list_robots))
@@ -165,7 +175,13 @@ pub fn router(registry: Arc<Registry>, maps: MapService) -> Router {
                 .put(dictionary::put)
                 .delete(dictionary::delete),
         )
-        .route("/api/v1/maps", get(maps::list))
+        .route(
+            "/api/v1/maps",
+            get(maps::list)
+                .post(maps::import)
+                .layer(DefaultBodyLimit::max(max_map_file_bytes)),
+        )
+        .route("/api/v1/maps/{map_id}/file", get(maps::file))
         .route("/api/v1/merges", get(maps::merges))
         .route("/api/v1/maps/{map_id}", get(maps::one))
         .route("/api/v1/maps/{map_id}/model", get(maps::model))
@@ -436,7 +452,7 @@ mod tests {
     async fn unknown_things_are_json_404s() {
         let registry = Arc::new(Registry::new(4, 4, true));
         registry.get_or_insert("known").unwrap();
-        let app = router(registry, MapService::new());
+        let app = router(registry, MapService::new(), 1 << 20);
         let (status, body) = get_json(app.clone(), "/api/v1/robots/ghost").await;
         assert_eq!(
             (status, body["error"].as_str()),
@@ -482,7 +498,7 @@ mod tests {
     #[tokio::test]
     async fn the_dictionary_is_replaced_checked_and_removed_at_run_time() {
         let maps = MapService::new();
-        let app = router(Arc::new(Registry::new(4, 4, true)), maps.clone());
+        let app = router(Arc::new(Registry::new(4, 4, true)), maps.clone(), 1 << 20);
         let (status, body) = get_json(app.clone(), "/api/v1/dictionary").await;
         assert_eq!(
             (status, body["error"].as_str()),
@@ -530,8 +546,11 @@ mod tests {
     #[tokio::test]
     async fn openapi_lists_every_route() {
         let registry = Arc::new(Registry::new(4, 4, true));
-        let (status, doc) =
-            get_json(router(registry, MapService::new()), "/api/v1/openapi.json").await;
+        let (status, doc) = get_json(
+            router(registry, MapService::new(), 1 << 20),
+            "/api/v1/openapi.json",
+        )
+        .await;
         assert_eq!(status, StatusCode::OK);
         let paths = doc["paths"].as_object().unwrap();
         for path in [
@@ -543,6 +562,7 @@ mod tests {
             "/api/v1/maps/{map_id}/spaces/{space}",
             "/api/v1/maps/{map_id}/route",
             "/api/v1/maps/{map_id}/graph",
+            "/api/v1/maps/{map_id}/file",
             "/api/v1/dictionary",
         ] {
             assert!(
@@ -552,5 +572,23 @@ mod tests {
             );
         }
         assert!(doc["components"]["schemas"]["RobotStatus"].is_object());
+        assert!(paths["/api/v1/maps"]["post"].is_object());
+    }
+
+    #[tokio::test]
+    async fn a_map_file_beyond_the_limit_or_not_a_map_is_refused() {
+        let maps = MapService::new();
+        let app = router(Arc::new(Registry::new(4, 4, true)), maps.clone(), 1000);
+        let (status, _) = send(app.clone(), "POST", "/api/v1/maps", &"x".repeat(1001)).await;
+        assert_eq!(status, StatusCode::PAYLOAD_TOO_LARGE);
+        let (status, body) = send(app.clone(), "POST", "/api/v1/maps", "VSGMAP\r\n").await;
+        assert_eq!(status, StatusCode::BAD_REQUEST);
+        let body: serde_json::Value = serde_json::from_str(&body).unwrap();
+        assert_eq!(body["error"], "bad_map_file");
+        assert!(
+            body["message"].as_str().unwrap().contains("cut short"),
+            "{body}"
+        );
+        assert!(maps.is_empty());
     }
 }

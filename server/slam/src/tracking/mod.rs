@@ -84,6 +84,19 @@ pub struct TrackerConfig {
     pub cull_keyframes: bool,
 }
 
+impl TrackerConfig {
+    /// How maps made or read with these settings are mapped.
+    pub fn mapping(&self) -> MappingConfig {
+        MappingConfig {
+            local_ba_iterations: self.local_ba_iterations,
+            local_ba_threads: self.local_ba_threads,
+            background_ba: self.background_ba,
+            triangulate_points: self.triangulate_points,
+            cull_keyframes: self.cull_keyframes,
+        }
+    }
+}
+
 impl Default for TrackerConfig {
     fn default() -> Self {
         Self {
@@ -154,7 +167,7 @@ pub struct StageTimes {
 }
 
 /// A frame's features, from [`Tracker::extract`], waiting for its markers.
-#[derive(Debug)]
+#[derive(Clone, Debug)]
 pub struct ExtractedFrame {
     frame: Frame,
     rig: Rig,
@@ -367,6 +380,27 @@ impl Tracker {
     /// The rest of [`Tracker::track`]: tracks a frame from [`Tracker::extract`] with the markers
     /// detected in it.
     pub fn track_extracted(
+        &mut self,
+        writer: &mut dyn MapWriter,
+        extracted: ExtractedFrame,
+        sightings: Vec<MarkerSighting>,
+    ) -> Result<FrameResult, TrackError> {
+        // A merge that lands while the frame waits for its map's writer would cost the frame;
+        // tracked again, it follows the merge first and lands in the merged map.
+        match self.track_once(writer, extracted.clone(), sightings.clone()) {
+            Err(TrackError::MapMerged { from, into }) => {
+                tracing::debug!(
+                    from = from.0,
+                    into = into.0,
+                    "frame tracked again after a merge"
+                );
+                self.track_once(writer, extracted, sightings)
+            }
+            other => other,
+        }
+    }
+
+    fn track_once(
         &mut self,
         writer: &mut dyn MapWriter,
         extracted: ExtractedFrame,
@@ -638,13 +672,7 @@ impl Tracker {
 
     /// How the robot's maps are mapped.
     fn mapping_config(&self) -> MappingConfig {
-        MappingConfig {
-            local_ba_iterations: self.config.local_ba_iterations,
-            local_ba_threads: self.config.local_ba_threads,
-            background_ba: self.config.background_ba,
-            triangulate_points: self.config.triangulate_points,
-            cull_keyframes: self.config.cull_keyframes,
-        }
+        self.config.mapping()
     }
 
     /// Leaves the active map: what it has pending lands, so it is left consistent, and the
