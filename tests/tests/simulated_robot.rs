@@ -157,3 +157,81 @@ async fn a_simulated_robot_streams_seq06_and_the_server_reports_its_frames_and_m
     );
     robot.close().await.unwrap();
 }
+
+/// A robot that streams, maps and leaves is forgotten once it has been neither online nor
+/// heard from for `[ingest] forget_after_s`: it leaves the robot list and its worker ends,
+/// while its map stays; the same id streaming again is a new robot with fresh counters.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_robot_that_left_is_forgotten_and_its_map_stays() {
+    let scenario = Scenario::builtin("seq06").unwrap();
+    let building = Building::from_plan(&scenario.plan).unwrap();
+    let test = TestServer::start_with(|c| c.ingest.forget_after_s = 1.0).await;
+    let renderer = Arc::new(Renderer::new(
+        &scenario.plan,
+        &building,
+        scenario.render.clone(),
+        1,
+    ));
+    let walk = Arc::new(scenario.walks().unwrap().remove(0));
+    let stream = |frames: usize| {
+        let (renderer, walk, endpoint) = (renderer.clone(), walk.clone(), &test.zenoh_endpoint);
+        async move {
+            let mut config = RobotConfig::connecting_to("leaver", endpoint);
+            config.delivery = Delivery::Reliable;
+            let robot = Robot::connect(config).await.unwrap();
+            let options = SimOptions {
+                rate: Rate::Hz(10.0),
+                limit: Some(frames),
+                ..SimOptions::default()
+            };
+            simulated::stream(&robot, renderer, walk, &options, |_, _| {})
+                .await
+                .unwrap();
+            robot
+        }
+    };
+    let processed = |frames: u64| {
+        let client = &test.client;
+        move || async move {
+            let status = client.robot("leaver").await.ok()?;
+            (status.frames.processed == frames).then_some(status)
+        }
+    };
+
+    let robot = stream(40).await;
+    wait_for(
+        "40 frames processed",
+        Duration::from_secs(60),
+        processed(40),
+    )
+    .await;
+    let maps = test.client.server_maps().await.unwrap();
+    assert_eq!(maps.len(), 1, "{maps:?}");
+    assert_eq!(maps[0].robots, ["leaver"]);
+    let keyframes = maps[0].keyframes;
+    assert!(keyframes > 0);
+    robot.close().await.unwrap();
+
+    // Gone from the robots within the idle time and a sweep, its map kept whole.
+    wait_for("the robot forgotten", Duration::from_secs(10), || async {
+        let robots = test.client.robots().await.ok()?;
+        robots.is_empty().then_some(())
+    })
+    .await;
+    let maps = test.client.server_maps().await.unwrap();
+    assert_eq!(maps.len(), 1, "{maps:?}");
+    assert_eq!(maps[0].keyframes, keyframes);
+    assert!(maps[0].robots.is_empty(), "{maps:?}");
+
+    // Back again: a new robot, counting from zero.
+    let robot = stream(10).await;
+    let status = wait_for(
+        "10 frames processed",
+        Duration::from_secs(60),
+        processed(10),
+    )
+    .await;
+    assert_eq!(status.frames.received, 10, "{status:?}");
+    robot.close().await.unwrap();
+    test.server.stop().await.unwrap();
+}

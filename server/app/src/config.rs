@@ -78,6 +78,10 @@ pub struct IngestConfig {
     pub drop_policy: DropPolicy,
     pub max_robots: usize,
     pub max_frame_bytes: usize,
+    /// A robot neither online nor heard from for this long is forgotten, seconds: its worker
+    /// ends and its entry goes (its maps stay), so robots that left do not hold places of
+    /// `max_robots` or memory for ever.
+    pub forget_after_s: f64,
 }
 
 impl Default for IngestConfig {
@@ -87,6 +91,7 @@ impl Default for IngestConfig {
             drop_policy: DropPolicy::DropOldest,
             max_robots: 64,
             max_frame_bytes: vsgraphs_pipeline::config::DEFAULT_MAX_FRAME_BYTES,
+            forget_after_s: 600.0,
         }
     }
 }
@@ -122,6 +127,15 @@ impl Config {
         let invalid = |field, message: String| Err(InvalidField { field, message }.into());
         if self.ingest.queue_capacity == 0 {
             return invalid("ingest.queue_capacity", "must be at least 1".into());
+        }
+        if !(self.ingest.forget_after_s.is_finite() && self.ingest.forget_after_s > 0.0) {
+            return invalid(
+                "ingest.forget_after_s",
+                format!(
+                    "must be a positive number of seconds, not {}",
+                    self.ingest.forget_after_s
+                ),
+            );
         }
         if self.ingest.max_robots == 0 {
             return invalid("ingest.max_robots", "must be at least 1".into());

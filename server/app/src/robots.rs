@@ -415,8 +415,8 @@ struct Recent {
     detection_ms: f64,
 }
 
-/// All robots, by id. Entries are never removed while the server runs: an offline robot keeps
-/// its counters so that what happened to its frames stays visible.
+/// All robots, by id. An offline robot keeps its counters, so that what happened to its frames
+/// stays visible, until it is forgotten ([`Registry::forget_idle`]).
 pub struct Registry {
     robots: RwLock<HashMap<String, Arc<RobotEntry>>>,
     max_robots: usize,
@@ -490,6 +490,28 @@ impl Registry {
         self.robots.read().unwrap_or_else(|p| p.into_inner()).len()
     }
 
+    /// Removes the robots that are not online and were last heard from (a frame or a
+    /// liveliness change) more than `after_ns` before `now_ns`, and closes their queues so
+    /// their workers end; returns them.
+    pub fn forget_idle(&self, now_ns: u64, after_ns: u64) -> Vec<Arc<RobotEntry>> {
+        let mut robots = self.robots.write().unwrap_or_else(|p| p.into_inner());
+        let idle: Vec<String> = robots
+            .values()
+            .filter(|r| {
+                let state = r.state();
+                state.presence != Some(Presence::Online)
+                    && state
+                        .last_seen_ns
+                        .is_none_or(|seen| now_ns.saturating_sub(seen) > after_ns)
+            })
+            .map(|r| r.robot_id.clone())
+            .collect();
+        idle.iter()
+            .filter_map(|id| robots.remove(id))
+            .inspect(|r| r.queue.close())
+            .collect()
+    }
+
     pub fn is_empty(&self) -> bool {
         self.len() == 0
     }
@@ -514,6 +536,34 @@ mod tests {
                 .collect::<Vec<_>>(),
             ["a", "b"]
         );
+    }
+
+    #[test]
+    fn robots_idle_for_long_are_forgotten_and_free_their_place() {
+        let registry = Registry::new(3, 4, true);
+        let (online, _) = registry.get_or_insert("online").unwrap();
+        let (left, _) = registry.get_or_insert("left").unwrap();
+        let (streaming, _) = registry.get_or_insert("streaming").unwrap();
+        online.set_presence(Presence::Online);
+        left.set_presence(Presence::Offline);
+        streaming.record_arrival();
+        let seen = |r: &RobotEntry| r.state().last_seen_ns.unwrap();
+        let after = 1_000_000_000;
+        // Not yet: every one was heard from within the window.
+        let first = seen(&left).min(seen(&streaming));
+        let last = seen(&left).max(seen(&streaming));
+        assert!(registry.forget_idle(first + after, after).is_empty());
+        // Later: the online one stays however long it is silent; the others go.
+        let forgotten = registry.forget_idle(last + after + 1, after);
+        let mut ids: Vec<_> = forgotten.iter().map(|r| r.robot_id.as_str()).collect();
+        ids.sort();
+        assert_eq!(ids, ["left", "streaming"]);
+        assert!(left.queue.is_closed() && streaming.queue.is_closed());
+        assert!(!online.queue.is_closed());
+        assert_eq!(registry.len(), 1);
+        // Their places are free again; an id that comes back is a new robot.
+        assert!(registry.get_or_insert("left").unwrap().1);
+        assert!(registry.get_or_insert("another").is_ok());
     }
 
     #[test]

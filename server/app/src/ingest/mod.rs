@@ -9,7 +9,7 @@ use crate::queue::{Arrival, Pushed};
 use crate::robots::{now_ns, ProcessingTimes, Registry, RobotEntry};
 use std::panic::{catch_unwind, AssertUnwindSafe};
 use std::sync::atomic::Ordering;
-use std::sync::{Arc, Mutex};
+use std::sync::{mpsc, Arc, Mutex};
 use std::thread::JoinHandle;
 use std::time::Duration;
 use vsgraphs_pipeline::MapService;
@@ -18,18 +18,21 @@ use vsgraphs_proto::api::{self, FrameDetections, Presence};
 use vsgraphs_proto::keys;
 use zenoh::sample::SampleKind;
 
-/// The running ingest: subscriptions and worker threads.
+/// The running ingest: subscriptions, worker threads, and the thread that forgets robots that
+/// left.
 pub struct Ingest {
     _frames: zenoh::pubsub::Subscriber<()>,
     _presence: zenoh::pubsub::Subscriber<()>,
     workers: Arc<Workers>,
+    sweeper: Option<(mpsc::Sender<()>, JoinHandle<()>)>,
 }
 
 struct Workers {
     registry: Arc<Registry>,
     config: Arc<Config>,
     maps: MapService,
-    handles: Mutex<Vec<JoinHandle<()>>>,
+    /// Each worker with the entry it serves (an id that comes back is a new entry).
+    handles: Mutex<Vec<(Arc<RobotEntry>, JoinHandle<()>)>>,
 }
 
 impl Workers {
@@ -51,7 +54,7 @@ impl Workers {
                     .handles
                     .lock()
                     .unwrap_or_else(|p| p.into_inner())
-                    .push(handle),
+                    .push((entry.clone(), handle)),
                 Err(e) => {
                     tracing::error!(robot_id, error = %e, "cannot start the robot's worker thread")
                 }
@@ -59,6 +62,40 @@ impl Workers {
         }
         Some(entry)
     }
+
+    /// Forgets the robots idle for longer than the configuration allows and waits for their
+    /// workers to finish what was queued.
+    fn forget_idle(&self) {
+        let after_ns = (self.config.ingest.forget_after_s * 1e9) as u64;
+        let forgotten = self.registry.forget_idle(now_ns(), after_ns);
+        if forgotten.is_empty() {
+            return;
+        }
+        let finished: Vec<JoinHandle<()>> = {
+            let mut handles = self.handles.lock().unwrap_or_else(|p| p.into_inner());
+            let (gone, kept) = std::mem::take(&mut *handles)
+                .into_iter()
+                .partition(|(entry, _)| forgotten.iter().any(|f| Arc::ptr_eq(f, entry)));
+            *handles = kept;
+            gone.into_iter().map(|(_, handle)| handle).collect()
+        };
+        for handle in finished {
+            let _ = handle.join();
+        }
+        for robot in forgotten {
+            tracing::info!(
+                robot_id = robot.robot_id,
+                idle_s = self.config.ingest.forget_after_s,
+                "robot forgotten: neither online nor heard from; its maps stay"
+            );
+        }
+    }
+}
+
+/// How often the sweeper looks for robots to forget: a tenth of the idle time allowed, at
+/// most every 10 s, so a robot is forgotten at most 10 % late.
+fn sweep_period(forget_after_s: f64) -> Duration {
+    Duration::from_secs_f64((forget_after_s / 10.0).clamp(0.05, 10.0))
 }
 
 impl Ingest {
@@ -120,15 +157,31 @@ impl Ingest {
                 robot.set_presence(presence);
             })
             .await?;
+        let (stop, stopped) = mpsc::channel::<()>();
+        let sweeping = workers.clone();
+        let period = sweep_period(workers.config.ingest.forget_after_s);
+        let sweeper = std::thread::Builder::new()
+            .name("robot-sweeper".into())
+            .spawn(move || {
+                while let Err(mpsc::RecvTimeoutError::Timeout) = stopped.recv_timeout(period) {
+                    sweeping.forget_idle();
+                }
+            })
+            .map_err(|e| format!("cannot start the robot sweeper: {e}"))?;
         Ok(Self {
             _frames: frames,
             _presence: presence,
             workers,
+            sweeper: Some((stop, sweeper)),
         })
     }
 
     /// Stops accepting frames, lets workers finish what is queued, and joins them.
-    pub fn stop(self) {
+    pub fn stop(mut self) {
+        if let Some((stop, sweeper)) = self.sweeper.take() {
+            drop(stop);
+            let _ = sweeper.join();
+        }
         for robot in self.workers.registry.all() {
             robot.queue.close();
         }
@@ -139,7 +192,7 @@ impl Ingest {
                 .lock()
                 .unwrap_or_else(|p| p.into_inner()),
         );
-        for handle in handles {
+        for (_, handle) in handles {
             let _ = handle.join();
         }
     }
