@@ -285,6 +285,14 @@ enum Command {
     },
 }
 
+/// The server configuration file's pipeline settings, or the built-in defaults.
+fn pipeline_config(file: Option<&std::path::Path>) -> anyhow::Result<PipelineConfig> {
+    Ok(match file {
+        Some(path) => PipelineConfig::load(path)?,
+        None => PipelineConfig::default(),
+    })
+}
+
 /// Creates `dir` and writes a scenario run's building model there (`model.json`).
 /// `STOP:RESUME` frame numbers, RESUME not before STOP.
 fn parse_restart(text: &str) -> Result<(usize, usize), String> {
@@ -359,10 +367,7 @@ fn main() -> anyhow::Result<()> {
             restart,
             json,
         } => {
-            let config = match config {
-                Some(path) => PipelineConfig::load(&path)?,
-                None => PipelineConfig::default(),
-            };
+            let config = pipeline_config(config.as_deref())?;
             let scenario = Scenario::load(&scenario)?;
             let options = ScenarioOptions {
                 seed,
@@ -394,10 +399,7 @@ fn main() -> anyhow::Result<()> {
             restart,
             json,
         } => {
-            let config = match config {
-                Some(path) => PipelineConfig::load(&path)?,
-                None => PipelineConfig::default(),
-            };
+            let config = pipeline_config(config.as_deref())?;
             let scenario = Scenario::load(&scenario)?;
             let options = ScenarioOptions {
                 robot,

@@ -10,7 +10,6 @@ use serde::Serialize;
 use vsgraphs_pipeline::offline::{self, FrameTimes, OfflineSummary};
 use vsgraphs_pipeline::PipelineConfig;
 use vsgraphs_sim::scenarios::Scenario;
-use vsgraphs_sim::{Building, Renderer};
 
 /// A frame counts as during a merge when its tracking overlaps the merge's time on the
 /// target's writer or this long after it: the robots of the absorbed map follow it at their
@@ -82,13 +81,7 @@ pub fn run(
     options: &ScenarioOptions,
     progress: impl Fn(usize, usize, usize) + Sync,
 ) -> anyhow::Result<MergeCost> {
-    let building = Building::from_plan(&scenario.plan).context("building the plan")?;
-    let renderer = Renderer::new(
-        &scenario.plan,
-        &building,
-        scenario.render.clone(),
-        options.seed,
-    );
+    let (building, renderer) = scenario.build(options.seed).context("building the plan")?;
     let walks = scenario.walks().context("planning the walks")?;
     let dictionary = dictionary_for(&building, options.dictionary)?;
     let service = service_for(config, dictionary.clone()).with_background_merges(true);

@@ -220,13 +220,7 @@ pub fn run(
     options: &PlacesOptions,
     progress: impl Fn(usize, usize),
 ) -> anyhow::Result<Vec<PlacesRun>> {
-    let building = Building::from_plan(&scenario.plan).context("building the plan")?;
-    let renderer = Renderer::new(
-        &scenario.plan,
-        &building,
-        scenario.render.clone(),
-        options.seed,
-    );
+    let (_, renderer) = scenario.build(options.seed).context("building the plan")?;
     let camera = &scenario.render.camera;
     let rig = rig_of(camera);
     let mut extractor = OrbExtractor::new(OrbParams::default())?;

@@ -204,13 +204,7 @@ pub fn run(
     options: &ScenarioOptions,
     progress: impl FnMut(usize, usize),
 ) -> anyhow::Result<ScenarioRun> {
-    let building = Building::from_plan(&scenario.plan).context("building the plan")?;
-    let renderer = Renderer::new(
-        &scenario.plan,
-        &building,
-        scenario.render.clone(),
-        options.seed,
-    );
+    let (building, renderer) = scenario.build(options.seed).context("building the plan")?;
     let mut walks = scenario.walks().context("planning the walks")?;
     anyhow::ensure!(
         options.robot < walks.len(),
@@ -559,13 +553,7 @@ pub fn mapped(
     scenario: &Scenario,
     options: &ScenarioOptions,
 ) -> anyhow::Result<(MapService, Vec<OfflineSummary>)> {
-    let building = Building::from_plan(&scenario.plan).context("building the plan")?;
-    let renderer = Renderer::new(
-        &scenario.plan,
-        &building,
-        scenario.render.clone(),
-        options.seed,
-    );
+    let (building, renderer) = scenario.build(options.seed).context("building the plan")?;
     let dictionary = dictionary_for(&building, options.dictionary)?;
     let service = service_for(config, dictionary.clone());
     let mut summaries = Vec::new();
@@ -595,13 +583,7 @@ pub fn run_together(
     options: &ScenarioOptions,
     mut progress: impl FnMut(usize, usize, usize),
 ) -> anyhow::Result<TogetherRun> {
-    let building = Building::from_plan(&scenario.plan).context("building the plan")?;
-    let renderer = Renderer::new(
-        &scenario.plan,
-        &building,
-        scenario.render.clone(),
-        options.seed,
-    );
+    let (building, renderer) = scenario.build(options.seed).context("building the plan")?;
     let walks = scenario.walks().context("planning the walks")?;
     let truth: BuildingModel = serde_json::from_str(&building.ground_truth_json())
         .context("reading the building's ground truth as a model")?;

@@ -333,6 +333,14 @@ pub enum ScenarioError {
 }
 
 impl Scenario {
+    /// The building its plan describes, and a renderer of it whose noise and textures come
+    /// from `seed` (the same seed, the same frames).
+    pub fn build(&self, seed: u64) -> Result<(crate::Building, crate::Renderer), PlanError> {
+        let building = crate::Building::from_plan(&self.plan)?;
+        let renderer = crate::Renderer::new(&self.plan, &building, self.render.clone(), seed);
+        Ok((building, renderer))
+    }
+
     /// A built-in scenario by name.
     pub fn builtin(name: &str) -> Option<Self> {
         Some(Self {
