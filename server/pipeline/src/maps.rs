@@ -432,12 +432,15 @@ impl MapService {
             ));
         }
         let outcome = self.absorb_into(&into, &from, evidence)?;
+        // Recorded before the source's writer ends: a request it leaves unanswered then finds
+        // the map moved, and its tracker follows the merge instead of losing the frame.
+        let report = self.record_merge(target, source, (&into, &from), outcome);
         let _ = resume.send(true);
         lock(&from.commands).take();
         if let Some(thread) = lock(&from.thread).take() {
             let _ = thread.join();
         }
-        Ok(self.record_merge(target, source, (&into, &from), outcome))
+        Ok(report)
     }
 
     /// Has `into`'s writer take `from` in; `from`'s writer is paused.
