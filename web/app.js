@@ -10,8 +10,12 @@ let lastMap = null;
 const $ = (id) => document.getElementById(id);
 const fmt = (v, digits = 1) => (v === null || v === undefined ? "–" : v.toFixed(digits));
 
+// A server with a read token is opened as http://HOST:PORT/#token=TOKEN.
+const token = new URLSearchParams(location.hash.slice(1)).get("token");
+const headers = token ? { Authorization: `Bearer ${token}` } : {};
+
 async function getJson(path) {
-  const response = await fetch(path);
+  const response = await fetch(path, { headers });
   const body = await response.json();
   if (!response.ok) throw Object.assign(new Error(body.message), { code: body.error });
   return body;

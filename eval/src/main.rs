@@ -196,6 +196,10 @@ enum Command {
         /// elsewhere and restarted; its maps should end as one.
         #[arg(long, value_parser = parse_restart)]
         restart: Option<(usize, usize)>,
+        /// Keep the maps in a map store at this path (a new file), as the server does, and
+        /// print what it cost (one robot's runs).
+        #[arg(long)]
+        store: Option<PathBuf>,
         /// Print JSON instead of the tables.
         #[arg(long)]
         json: bool,
@@ -397,10 +401,18 @@ fn main() -> anyhow::Result<()> {
             dictionary,
             realtime,
             restart,
+            store,
             json,
         } => {
             let config = pipeline_config(config.as_deref())?;
             let scenario = Scenario::load(&scenario)?;
+            if let Some(path) = &store {
+                anyhow::ensure!(
+                    !path.exists(),
+                    "{} exists: the run measures a new store",
+                    path.display()
+                );
+            }
             let options = ScenarioOptions {
                 robot,
                 limit,
@@ -408,6 +420,7 @@ fn main() -> anyhow::Result<()> {
                 dictionary,
                 realtime,
                 restart,
+                store,
                 ..ScenarioOptions::default()
             };
             if all_robots {

@@ -43,6 +43,9 @@ pub struct ScenarioOptions {
     /// The robot stops at the first frame and starts again, in a new session, at the second
     /// (frames between are not sent): a robot switched off, carried elsewhere and restarted.
     pub restart: Option<(usize, usize)>,
+    /// Keep the maps in a store at this path (a new file), as the server does: measures the
+    /// store's cost (`ScenarioRun::store`).
+    pub store: Option<std::path::PathBuf>,
 }
 
 /// Which semantic dictionary a scenario's run gets.
@@ -67,6 +70,7 @@ impl Default for ScenarioOptions {
             dictionary: DictionaryChoice::V1,
             realtime: false,
             restart: None,
+            store: None,
         }
     }
 }
@@ -111,6 +115,8 @@ pub struct ScenarioRun {
     pub merges: Vec<MergeRow>,
     /// Merges refused (places recognised by visual words, shared markers), and why.
     pub refused_merges: Vec<(u32, u32, String)>,
+    /// The store's cost, when the run kept its maps in one.
+    pub store: Option<StoreReport>,
     #[serde(skip)]
     pub model: BuildingModel,
     #[serde(skip)]
@@ -119,6 +125,46 @@ pub struct ScenarioRun {
     pub estimate_as_tracked: Trajectory,
     #[serde(skip)]
     pub reference: Trajectory,
+}
+
+/// What keeping the maps in a store cost a run: commits on the store's thread, hand-overs on
+/// the maps' writers (hashing every row, serialising the changed ones), ms.
+#[derive(Debug, Serialize)]
+pub struct StoreReport {
+    pub commits: u64,
+    pub megabytes_written: f64,
+    pub file_megabytes: f64,
+    pub commit_ms_median: f64,
+    pub commit_ms_p99: f64,
+    pub commit_ms_max: f64,
+    pub hand_over_ms_median: f64,
+    pub hand_over_ms_p99: f64,
+    pub hand_over_ms_max: f64,
+}
+
+/// The server's default interval between a map's hand-overs to the store.
+fn store_every() -> Duration {
+    Duration::from_secs(1)
+}
+
+fn store_report(service: &MapService, path: &std::path::Path) -> Option<StoreReport> {
+    use vsgraphs_pipeline::offline::{median, quantile};
+    // Every writer's last changes committed first.
+    service.stop();
+    let stats = service.store_stats()?;
+    let commits: Vec<f64> = stats.commit_ms.iter().copied().collect();
+    let hand_overs: Vec<f64> = stats.hand_over_ms.iter().copied().collect();
+    Some(StoreReport {
+        commits: stats.commits,
+        megabytes_written: stats.bytes as f64 / 1e6,
+        file_megabytes: std::fs::metadata(path).map_or(0.0, |m| m.len() as f64 / 1e6),
+        commit_ms_median: median(&commits),
+        commit_ms_p99: quantile(&commits, 0.99),
+        commit_ms_max: quantile(&commits, 1.0),
+        hand_over_ms_median: median(&hand_overs),
+        hand_over_ms_p99: quantile(&hand_overs, 0.99),
+        hand_over_ms_max: quantile(&hand_overs, 1.0),
+    })
 }
 
 /// The loops closed in a map against the truth: each loop edge's relative pose against the
@@ -222,6 +268,12 @@ pub fn run(
     let dictionary = dictionary_for(&building, options.dictionary)?;
 
     let service = service_for(config, dictionary.clone());
+    let service = match &options.store {
+        Some(path) => service
+            .with_store(path, store_every())
+            .context("opening the map store")?,
+        None => service,
+    };
     let (summary, poses) = run_walk(
         config,
         &renderer,
@@ -304,6 +356,10 @@ pub fn run(
             })
             .collect(),
         refused_merges: refused_merges(&service),
+        store: options
+            .store
+            .as_deref()
+            .and_then(|path| store_report(&service, path)),
         model,
         estimate,
         estimate_as_tracked,
@@ -881,6 +937,20 @@ pub fn print_table(run: &ScenarioRun) {
         m.tracking_cpu,
         m.tracking_cpu_p99
     );
+    if let Some(s) = &run.store {
+        println!(
+            "store: {} commits, {:.1} MB written, file {:.1} MB; commit ms median {:.2}, p99 {:.2}, max {:.2}; hand-over on the writer ms median {:.2}, p99 {:.2}, max {:.2}",
+            s.commits,
+            s.megabytes_written,
+            s.file_megabytes,
+            s.commit_ms_median,
+            s.commit_ms_p99,
+            s.commit_ms_max,
+            s.hand_over_ms_median,
+            s.hand_over_ms_p99,
+            s.hand_over_ms_max
+        );
+    }
     let l = &run.loops;
     println!(
         "loops closed: {} ({} wrong: more than {WRONG_LOOP_M} m or {WRONG_LOOP_DEG}° from the truth); largest error {:.3} m, {:.2}°",

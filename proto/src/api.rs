@@ -407,6 +407,10 @@ pub struct MapSummary {
     pub doorways: u64,
     pub rooms: u64,
     pub corridors: u64,
+    /// Keyframes (culled ones included) written to the server's map store, which a kill of the
+    /// server would not lose; absent without a store or before the map's first commit.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub stored_keyframes: Option<u64>,
 }
 
 /// Two maps of the server made one, in `GET /api/v1/merges`: the source map was moved into the

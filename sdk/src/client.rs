@@ -33,6 +33,8 @@ pub enum ClientError {
 pub struct Client {
     base: String,
     http: reqwest::Client,
+    /// Sent as `Authorization: Bearer` with every request.
+    token: Option<String>,
 }
 
 impl Client {
@@ -41,6 +43,23 @@ impl Client {
         Self {
             base: base_url.into().trim_end_matches('/').to_owned(),
             http: reqwest::Client::new(),
+            token: None,
+        }
+    }
+
+    /// The same client sending `token` (the server's `[http] admin_token` or `read_token`)
+    /// with every request.
+    pub fn with_token(mut self, token: impl Into<String>) -> Self {
+        self.token = Some(token.into());
+        self
+    }
+
+    /// A request with the client's token.
+    fn request(&self, method: reqwest::Method, url: reqwest::Url) -> reqwest::RequestBuilder {
+        let request = self.http.request(method, url);
+        match &self.token {
+            Some(token) => request.bearer_auth(token),
+            None => request,
         }
     }
 
@@ -149,8 +168,7 @@ impl Client {
     pub async fn set_dictionary(&self, json: &str) -> Result<DictionaryInfo, ClientError> {
         let url = self.url("/api/v1/dictionary")?;
         let request = self
-            .http
-            .put(url.clone())
+            .request(reqwest::Method::PUT, url.clone())
             .header("content-type", "application/json")
             .body(json.to_owned());
         self.send(url, request).await
@@ -169,7 +187,11 @@ impl Client {
             url: name.clone(),
             source,
         };
-        let response = self.http.get(url).send().await.map_err(http)?;
+        let response = self
+            .request(reqwest::Method::GET, url)
+            .send()
+            .await
+            .map_err(http)?;
         let status = response.status();
         if status.is_success() {
             return Ok(response.bytes().await.map_err(http)?.to_vec());
@@ -193,8 +215,7 @@ impl Client {
     pub async fn import_map(&self, file: Vec<u8>) -> Result<MapSummary, ClientError> {
         let url = self.url("/api/v1/maps")?;
         let request = self
-            .http
-            .post(url.clone())
+            .request(reqwest::Method::POST, url.clone())
             .header("content-type", "application/octet-stream")
             .body(file);
         self.send(url, request).await
@@ -214,7 +235,7 @@ impl Client {
     }
 
     async fn get_url<T: DeserializeOwned>(&self, url: reqwest::Url) -> Result<T, ClientError> {
-        let request = self.http.get(url.clone());
+        let request = self.request(reqwest::Method::GET, url.clone());
         self.send(url, request).await
     }
 

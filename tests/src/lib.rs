@@ -43,6 +43,8 @@ pub struct TestServer {
     pub server: Server,
     pub zenoh_endpoint: String,
     pub client: Client,
+    /// The folder of its map store, removed with it.
+    pub store_dir: tempfile::TempDir,
 }
 
 impl TestServer {
@@ -56,6 +58,8 @@ impl TestServer {
         config.http.listen = "127.0.0.1:0".parse().unwrap();
         config.zenoh.listen = vec![zenoh_endpoint.clone()];
         config.zenoh.multicast_scouting = false;
+        let store_dir = tempfile::tempdir().expect("a folder for the map store");
+        config.store.path = store_dir.path().join("maps.redb");
         adjust(&mut config);
         let server = Server::start(config).await.expect("the server starts");
         let client = Client::new(format!("http://{}", server.http_addr()));
@@ -63,6 +67,7 @@ impl TestServer {
             server,
             zenoh_endpoint,
             client,
+            store_dir,
         }
     }
 

@@ -8,6 +8,7 @@ use std::sync::Arc;
 use std::time::{Duration, Instant};
 use vsgraphs_eval::scenario::{self, ScenarioOptions};
 use vsgraphs_pipeline::maps::{ImportError, MapService};
+use vsgraphs_pipeline::store::StoreError;
 use vsgraphs_pipeline::PipelineConfig;
 use vsgraphs_proto::api::MapView;
 use vsgraphs_sdk::player::Rate;
@@ -134,6 +135,8 @@ fn a_map_exported_and_imported_is_the_same_map() {
     }
     assert_eq!(other.len(), 1);
 
+    kept_in_a_store(&config, &bytes);
+
     // Over HTTP, into a running server, and a robot walking the building maps in it.
     let runtime = tokio::runtime::Runtime::new().unwrap();
     runtime.block_on(served(&scenario, &bytes));
@@ -211,4 +214,70 @@ async fn served(scenario: &Scenario, bytes: &[u8]) {
     assert!(maps[0].keyframes >= map.keyframes, "{maps:?}");
     robot.close().await.unwrap();
     test.server.stop().await.unwrap();
+}
+
+/// The map of `bytes` kept in a map store: written whole when it arrives, read back by the next
+/// service on the same store with its id, the same map to the last bit. A store cut short, or
+/// with any of its bytes changed, is refused with what is wrong, or read back as it was:
+/// never as another map.
+fn kept_in_a_store(config: &PipelineConfig, bytes: &[u8]) {
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("maps.redb");
+    let service = || MapService::new().with_mapping(config.tracking.tracker().mapping());
+    let first = service().with_store(&path, Duration::from_secs(1)).unwrap();
+    let id = first.import(bytes).unwrap();
+    first.stop();
+    assert_eq!(
+        first.stored_keyframes(id),
+        Some(archive::decode(bytes).unwrap().keyframes.len() as u32)
+    );
+    drop(first);
+    let size = std::fs::metadata(&path).unwrap().len();
+
+    let started = Instant::now();
+    let second = service().with_store(&path, Duration::from_secs(1)).unwrap();
+    let read_ms = started.elapsed().as_secs_f64() * 1e3;
+    assert_eq!(second.all().iter().map(|m| m.0).collect::<Vec<_>>(), [id]);
+    assert!(
+        second.export(id).unwrap() == bytes,
+        "the map read from the store differs"
+    );
+    second.stop();
+    drop(second);
+    eprintln!("store: {size} bytes, read back in {read_ms:.0} ms");
+
+    let original = std::fs::read(&path).unwrap();
+    let damaged = dir.path().join("damaged.redb");
+    let open = |stored: &[u8]| -> Result<bool, StoreError> {
+        std::fs::write(&damaged, stored).unwrap();
+        let s = service().with_store(&damaged, Duration::from_secs(1))?;
+        let ids: Vec<_> = s.all().iter().map(|m| m.0).collect();
+        let same = ids == [id] && s.export(id).unwrap() == bytes;
+        s.stop();
+        Ok(same)
+    };
+    let cut = open(&original[..original.len() / 2]).unwrap_err();
+    eprintln!("store cut short: {cut}");
+    let (mut refused, mut intact) = (0, 0);
+    for at in (0..original.len()).step_by(original.len() / 23 + 1) {
+        let mut flipped = original.clone();
+        flipped[at] ^= 0x10;
+        match open(&flipped) {
+            Err(e) => {
+                refused += 1;
+                if refused == 1 {
+                    eprintln!("store with a byte changed: {e}");
+                }
+            }
+            Ok(same) => {
+                assert!(same, "a byte changed at {at} gave another map");
+                intact += 1;
+            }
+        }
+    }
+    eprintln!(
+        "a byte changed at {} places: {refused} refused, {intact} read back as written",
+        refused + intact
+    );
+    assert!(refused > 0);
 }

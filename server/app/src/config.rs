@@ -24,6 +24,7 @@ pub struct Config {
     pub tracking: TrackingConfig,
     pub semantics: SemanticsConfig,
     pub atlas: AtlasConfig,
+    pub store: StoreConfig,
 }
 
 impl Default for Config {
@@ -39,6 +40,28 @@ impl Default for Config {
             tracking: TrackingConfig::default(),
             semantics: SemanticsConfig::default(),
             atlas: AtlasConfig::default(),
+            store: StoreConfig::default(),
+        }
+    }
+}
+
+/// Where the maps are kept across restarts.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct StoreConfig {
+    /// The maps' store (one redb file, made if absent; a relative path is taken from the
+    /// working directory). Empty: maps live in memory only and end with the server.
+    pub path: std::path::PathBuf,
+    /// A map's changes are handed to the store at most this long after they were made,
+    /// seconds: what a kill can lose, against the cost of looking for what changed.
+    pub save_every_s: f64,
+}
+
+impl Default for StoreConfig {
+    fn default() -> Self {
+        Self {
+            path: "vsgraphs-maps.redb".into(),
+            save_every_s: 1.0,
         }
     }
 }
@@ -50,6 +73,12 @@ pub struct HttpConfig {
     /// Largest map file `POST /api/v1/maps` takes, bytes: a building two robots mapped in a
     /// few minutes is about 50 MB, an hour of one robot a few hundred.
     pub max_map_file_bytes: usize,
+    /// Bearer token every request that changes state must carry (`VSGRAPHS_ADMIN_TOKEN`
+    /// overrides it); empty: none needed.
+    pub admin_token: String,
+    /// Bearer token reading the API needs (the admin token does too); empty: reading is open.
+    /// `VSGRAPHS_READ_TOKEN` overrides it.
+    pub read_token: String,
 }
 
 impl Default for HttpConfig {
@@ -57,6 +86,8 @@ impl Default for HttpConfig {
         Self {
             listen: SocketAddr::from(([127, 0, 0, 1], 8080)),
             max_map_file_bytes: 512 << 20,
+            admin_token: String::new(),
+            read_token: String::new(),
         }
     }
 }
@@ -134,6 +165,15 @@ impl Config {
                 format!(
                     "must be a positive number of seconds, not {}",
                     self.ingest.forget_after_s
+                ),
+            );
+        }
+        if !(self.store.save_every_s.is_finite() && self.store.save_every_s >= 0.0) {
+            return invalid(
+                "store.save_every_s",
+                format!(
+                    "must be a number of seconds, 0 or more, not {}",
+                    self.store.save_every_s
                 ),
             );
         }

@@ -55,6 +55,13 @@ impl Server {
             .with_background_merges(true)
             .with_loop_closing(config.atlas.close_loops)
             .with_mapping(config.tracking.tracker().mapping());
+        let maps = if config.store.path.as_os_str().is_empty() {
+            maps
+        } else {
+            let every = std::time::Duration::from_secs_f64(config.store.save_every_s);
+            maps.with_store(&config.store.path, every)
+                .context("opening the map store")?
+        };
         vsgraphs_pipeline::FrameProcessor::new(
             &config.markers,
             &config.tracking,
@@ -79,10 +86,19 @@ impl Server {
         let ingest = Ingest::start(&session, registry.clone(), config.clone(), maps.clone())
             .await
             .map_err(|e| anyhow::anyhow!("subscribing on zenoh: {e}"))?;
+        let access = api::access::Access::new(&config.http.admin_token, &config.http.read_token);
+        if access.admin_token.is_none() && !http_addr.ip().is_loopback() {
+            tracing::warn!(
+                %http_addr,
+                "the API listens beyond this machine without an admin token: anyone who reaches \
+                 it can replace the dictionary and add maps ([http] admin_token)"
+            );
+        }
         let app = api::router(
             registry.clone(),
             maps.clone(),
             config.http.max_map_file_bytes,
+            access,
         )
         .merge(web::router());
         let (stop_http, stopped) = oneshot::channel();

@@ -52,6 +52,9 @@ struct Overrides {
     /// room or corridor and open which door.
     #[arg(long, global = true)]
     semantic_dictionary: Option<PathBuf>,
+    /// The maps' store (a redb file, made if absent); "" keeps maps in memory only.
+    #[arg(long, global = true)]
+    store: Option<PathBuf>,
 }
 
 #[derive(Subcommand)]
@@ -144,6 +147,15 @@ async fn stop_signal() -> anyhow::Result<&'static str> {
     }
 }
 
+/// A client of the server at `server` with the configuration's admin token, if any.
+fn admin(server: &str, config: &Config) -> vsgraphs_sdk::Client {
+    let client = vsgraphs_sdk::Client::new(server);
+    match config.http.admin_token.as_str() {
+        "" => client,
+        token => client.with_token(token),
+    }
+}
+
 fn parse_refinement(s: &str) -> Result<CornerRefinement, String> {
     match s {
         "subpixel" => Ok(CornerRefinement::Subpixel),
@@ -183,6 +195,16 @@ fn effective_config(cli: &Cli) -> anyhow::Result<Config> {
     }
     if let Some(file) = &o.semantic_dictionary {
         config.semantics.dictionary_file = file.clone();
+    }
+    if let Some(path) = &o.store {
+        config.store.path = path.clone();
+    }
+    // Secrets from the environment rather than flags, which other users can read.
+    if let Ok(token) = std::env::var("VSGRAPHS_ADMIN_TOKEN") {
+        config.http.admin_token = token;
+    }
+    if let Ok(token) = std::env::var("VSGRAPHS_READ_TOKEN") {
+        config.http.read_token = token;
     }
     config.validate()?;
     Ok(config)
@@ -348,14 +370,22 @@ async fn main() -> anyhow::Result<()> {
                 );
             }
         }
-        Command::PrintConfig => print!("{}", toml::to_string_pretty(&config)?),
+        Command::PrintConfig => {
+            // Tokens are secrets: say whether they are set, not what they are.
+            let mut shown = config.clone();
+            for token in [&mut shown.http.admin_token, &mut shown.http.read_token] {
+                if !token.is_empty() {
+                    *token = "(set)".into();
+                }
+            }
+            print!("{}", toml::to_string_pretty(&shown)?)
+        }
         Command::Export {
             map_id,
             file,
             server,
         } => {
-            let client = vsgraphs_sdk::Client::new(&server);
-            let bytes = client.export_map(map_id).await?;
+            let bytes = admin(&server, &config).export_map(map_id).await?;
             std::fs::write(&file, &bytes).with_context(|| format!("writing {}", file.display()))?;
             println!(
                 "map {map_id}: {} bytes written to {}",
@@ -366,8 +396,7 @@ async fn main() -> anyhow::Result<()> {
         Command::Import { file, server } => {
             let bytes =
                 std::fs::read(&file).with_context(|| format!("reading {}", file.display()))?;
-            let client = vsgraphs_sdk::Client::new(&server);
-            let map = client.import_map(bytes).await?;
+            let map = admin(&server, &config).import_map(bytes).await?;
             println!(
                 "{} imported as map {}: {} keyframes, {} points, {} markers",
                 file.display(),

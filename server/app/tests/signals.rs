@@ -9,6 +9,7 @@ use std::time::{Duration, Instant};
 
 #[test]
 fn sigterm_stops_the_server_in_order() {
+    let store = tempfile::tempdir().unwrap();
     let mut server = Command::new(env!("CARGO_BIN_EXE_vsgraphs-server"))
         .args([
             "--http-listen",
@@ -16,7 +17,9 @@ fn sigterm_stops_the_server_in_order() {
             "--zenoh-listen",
             "tcp/127.0.0.1:0",
             "--no-scouting",
+            "--store",
         ])
+        .arg(store.path().join("maps.redb"))
         .stdout(Stdio::piped())
         .stderr(Stdio::piped())
         .spawn()

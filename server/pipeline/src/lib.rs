@@ -19,6 +19,7 @@ pub mod maps;
 pub mod model;
 pub mod offline;
 pub mod processor;
+pub mod store;
 pub mod validate;
 
 pub use config::PipelineConfig;

@@ -11,14 +11,17 @@
 //! waiting for a writer. Trackers read the map itself between requests ([`SharedMap`]).
 
 use crate::model;
+use crate::store::{Save, Saver, Store, StoreError};
 use std::any::Any;
 use std::collections::{BTreeMap, BTreeSet, VecDeque};
 use std::panic::{catch_unwind, AssertUnwindSafe};
 use std::sync::atomic::{AtomicBool, AtomicU32, Ordering};
 use std::sync::{mpsc, Arc, Condvar, Mutex, MutexGuard, RwLock, Weak};
 use std::thread::JoinHandle;
+use std::time::{Duration, Instant};
 use vsgraphs_proto::api::MapView;
 use vsgraphs_semantics::{Dictionary, SemanticMap};
+use vsgraphs_slam::archive::rows::Ledger;
 use vsgraphs_slam::local_mapping::{MergeOutcome, PointStatistics};
 use vsgraphs_slam::loops;
 use vsgraphs_slam::merge::{self, Evidence, Place};
@@ -67,6 +70,8 @@ struct Inner {
     /// How maps the service starts itself (imported, read from the store) are mapped; the
     /// default tracker's settings unless set ([`MapService::with_mapping`]).
     mapping: Mutex<Option<MappingConfig>>,
+    /// Where maps are kept across restarts ([`MapService::with_store`]); none: in memory only.
+    saver: Mutex<Option<Arc<Saver>>>,
 }
 
 /// Merge look-ups waiting for the service's merge thread.
@@ -388,6 +393,10 @@ impl MapService {
                 let _ = thread.join();
             }
         }
+        // The writers' last changes are handed over: write them.
+        if let Some(saver) = lock(&self.inner.saver).as_ref() {
+            saver.stop();
+        }
     }
 
     /// Joins map `source` to map `target`, when the markers both hold agree on where one lies in
@@ -585,6 +594,57 @@ impl MapService {
         self
     }
 
+    /// Keeps the maps in the store at `path` (made if absent): the maps in it are read back now,
+    /// whole and checked, with their ids, and mapped like the rest; every map's changes are
+    /// written to it at most `every` after they were made ([`crate::store`]). Call after [`MapService::with_mapping`]. A store that
+    /// cannot be read is refused whole, with what is wrong.
+    pub fn with_store(self, path: &std::path::Path, every: Duration) -> Result<Self, StoreError> {
+        let store = Store::open(path)?;
+        let started = Instant::now();
+        let maps = store.maps()?;
+        let saver = Saver::start(store, &maps, every).map_err(|e| StoreError::Open {
+            path: path.to_owned(),
+            reason: format!("cannot start its thread: {e}"),
+        })?;
+        *lock(&self.inner.saver) = Some(Arc::new(saver));
+        let settings = lock(&self.inner.mapping)
+            .clone()
+            .unwrap_or_else(|| vsgraphs_slam::TrackerConfig::default().mapping());
+        let count = maps.len();
+        for (id, map) in maps {
+            let keyframes = map.live_keyframes();
+            self.start_map(map, &settings, 0, Some(id))
+                .map_err(|e| StoreError::Open {
+                    path: path.to_owned(),
+                    reason: e.to_string(),
+                })?;
+            tracing::info!(map = id.0, keyframes, "map read from the store");
+        }
+        tracing::info!(
+            path = %path.display(),
+            maps = count,
+            ms = started.elapsed().as_secs_f64() * 1e3,
+            "map store opened"
+        );
+        Ok(self)
+    }
+
+    /// Keyframes of map `id` (culled ones included) written to the store, which a kill of
+    /// the server would not lose; `None` without a store or for a map not yet written.
+    pub fn stored_keyframes(&self, id: MapId) -> Option<u32> {
+        lock(&self.inner.saver).as_ref()?.stored_keyframes(id)
+    }
+
+    /// What the store has cost so far (`None` without a store).
+    pub fn store_stats(&self) -> Option<crate::store::StoreStats> {
+        Some(lock(&self.inner.saver).as_ref()?.stats())
+    }
+
+    /// Commits to the store that failed (0 without a store).
+    pub fn store_failures(&self) -> u64 {
+        lock(&self.inner.saver).as_ref().map_or(0, |s| s.failures())
+    }
+
     /// A map file read back as a new map of the service (its id is returned), mapped from
     /// then on like any other: robots that lose track relocalise in it and maps that show its
     /// places merge with it.
@@ -594,7 +654,7 @@ impl MapService {
         let settings = lock(&self.inner.mapping)
             .clone()
             .unwrap_or_else(|| vsgraphs_slam::TrackerConfig::default().mapping());
-        let shared = self.start_map(map, &settings, 0)?;
+        let shared = self.start_map(map, &settings, 0, None)?;
         tracing::info!(map = shared.id().0, keyframes, "map imported");
         Ok(shared.id())
     }
@@ -866,14 +926,36 @@ impl MapService {
 
     /// Adds `map` under a new id, with a writer that maps with `settings`; a map with
     /// keyframes is published at once, its semantic layer moments later.
+    /// A map read from the store keeps its id (`stored`), which later maps' ids follow.
     fn start_map(
         &self,
         map: Map,
         settings: &MappingConfig,
         label: usize,
+        stored: Option<MapId>,
     ) -> Result<Arc<SharedMap>, TrackError> {
-        let id = MapId(self.inner.next_id.fetch_add(1, Ordering::Relaxed));
-        let view = model::map_view(&map, id, label, 0, None, None);
+        let id = match stored {
+            Some(id) => {
+                self.inner
+                    .next_id
+                    .fetch_max(id.0.saturating_add(1), Ordering::Relaxed);
+                id
+            }
+            None => MapId(self.inner.next_id.fetch_add(1, Ordering::Relaxed)),
+        };
+        let saver = lock(&self.inner.saver).clone();
+        let ledger = match stored {
+            Some(_) => Ledger::synced(&map),
+            None => Ledger::new(),
+        };
+        // A map read back or imported was last changed by its newest keyframe.
+        let updated_ns = map
+            .keyframes
+            .iter()
+            .map(|k| k.frame.timestamp_ns)
+            .max()
+            .unwrap_or(0);
+        let view = model::map_view(&map, id, label, updated_ns, None, None);
         let filled = !map.keyframes.is_empty();
         let map = Arc::new(SharedMap::with_map(id, map));
         let snapshot = Arc::new(Mutex::new(Published {
@@ -888,6 +970,11 @@ impl MapService {
             snapshot: snapshot.clone(),
             semantics: self.inner.semantics.clone(),
             layer_behind: 0,
+            save_every: saver.as_ref().map_or(Duration::ZERO, |s| s.every()),
+            saver,
+            ledger,
+            unsaved: false,
+            saved_at: Instant::now(),
         };
         let thread = std::thread::Builder::new()
             .name(format!("map-{}", id.0))
@@ -999,7 +1086,7 @@ impl MapWriter for MapService {
         settings: &MappingConfig,
         label: usize,
     ) -> Result<Arc<SharedMap>, TrackError> {
-        self.start_map(Map::default(), settings, label)
+        self.start_map(Map::default(), settings, label, None)
     }
 
     fn request(&mut self, map: &SharedMap, request: MapRequest) -> Result<MapReply, TrackError> {
@@ -1032,6 +1119,14 @@ struct Writer {
     semantics: Arc<RwLock<Semantics>>,
     /// Keyframes mapped since the semantic layer was last published.
     layer_behind: usize,
+    /// The store, and what of this map was last handed to it.
+    saver: Option<Arc<Saver>>,
+    ledger: Ledger,
+    /// Keyframes were mapped since the last hand-over, made at `saved_at`; the next is due
+    /// `save_every` after it.
+    unsaved: bool,
+    saved_at: Instant,
+    save_every: Duration,
 }
 
 /// The map's walls are rebuilt after every keyframe, as local BA uses them; the rest of the
@@ -1047,22 +1142,36 @@ impl Writer {
     fn run(mut self, commands: mpsc::Receiver<Command>) {
         let span = tracing::info_span!("map", id = self.map.id().0);
         let _entered = span.enter();
+        // An imported map is written whole before anything else.
+        self.guarded("the map's store", |w| w.save(Vec::new()));
+        let mut idle_since = Instant::now();
         loop {
-            let command = if self.layer_behind > 0 {
-                match commands.recv_timeout(LAYER_IDLE) {
+            // Waits for a command, or until the semantic layer or the store is due.
+            let layer_due =
+                (self.layer_behind > 0).then(|| LAYER_IDLE.saturating_sub(idle_since.elapsed()));
+            let save_due = self
+                .unsaved
+                .then(|| self.save_every.saturating_sub(self.saved_at.elapsed()));
+            let command = match layer_due.into_iter().chain(save_due).min() {
+                Some(wait) => match commands.recv_timeout(wait) {
                     Ok(command) => command,
                     Err(mpsc::RecvTimeoutError::Timeout) => {
-                        self.guarded("the map's semantic layer", Self::publish_semantics);
+                        if self.unsaved && self.saved_at.elapsed() >= self.save_every {
+                            self.guarded("the map's store", |w| w.save(Vec::new()));
+                        }
+                        if self.layer_behind > 0 && idle_since.elapsed() >= LAYER_IDLE {
+                            self.guarded("the map's semantic layer", Self::publish_semantics);
+                        }
                         continue;
                     }
                     Err(mpsc::RecvTimeoutError::Disconnected) => break,
-                }
-            } else {
-                match commands.recv() {
+                },
+                None => match commands.recv() {
                     Ok(command) => command,
                     Err(_) => break,
-                }
+                },
             };
+            idle_since = Instant::now();
             let (request, reply) = match command {
                 Command::Request { request, reply } => (request, reply),
                 Command::Refresh => {
@@ -1093,6 +1202,9 @@ impl Writer {
                     };
                     self.guarded("the map's snapshot", |w| w.publish_geometry(None));
                     self.guarded("the map's semantic layer", Self::publish_semantics);
+                    // The merged map's rows go with this map's new ones, in one commit.
+                    let merged = answer.is_ok().then(|| source.id());
+                    self.guarded("the map's store", |w| w.save(merged.into_iter().collect()));
                     let _ = reply.send(answer);
                     continue;
                 }
@@ -1120,6 +1232,9 @@ impl Writer {
             }
             // The robot's worker may have gone (the server stopping): nobody to tell.
             let _ = reply.send(answer);
+            if flush {
+                self.guarded("the map's store", |w| w.save(Vec::new()));
+            }
             if stamp.is_some() && !flush {
                 self.guarded("loop closing", |w| {
                     w.mapper.look_for_pending_loop(&mut w.map.write())
@@ -1130,8 +1245,46 @@ impl Writer {
                 } else {
                     self.guarded("the map's walls", Self::update_walls);
                 }
+                self.unsaved = true;
+                if self.saved_at.elapsed() >= self.save_every {
+                    self.guarded("the map's store", |w| w.save(Vec::new()));
+                }
             }
         }
+        // The service is stopping: what is left goes to the store.
+        if self.unsaved {
+            self.guarded("the map's store", |w| w.save(Vec::new()));
+        }
+    }
+
+    /// Hands the rows changed since the last save to the store (if any), with the maps merged
+    /// into this one since, whose rows go in the same commit.
+    fn save(&mut self, retire: Vec<MapId>) {
+        let Some(saver) = self.saver.clone() else {
+            return;
+        };
+        self.unsaved = false;
+        self.saved_at = Instant::now();
+        let started = Instant::now();
+        if saver.take_rewrite(self.map.id()) {
+            self.ledger = Ledger::new();
+        }
+        let changes = {
+            let map = self.map.read();
+            if map.keyframes.is_empty() {
+                return;
+            }
+            self.ledger.changes(&map)
+        };
+        if changes.is_empty() && retire.is_empty() {
+            return;
+        }
+        saver.send(Save {
+            map: self.map.id(),
+            changes,
+            retire,
+        });
+        saver.record_hand_over(started.elapsed().as_secs_f64() * 1e3);
     }
 
     /// Runs one request; returns its answer and the stamp the map is now at.

@@ -20,6 +20,8 @@ use std::collections::BTreeSet;
 use vsgraphs_optim::{DepthResidual, Pinhole, Se3};
 use vsgraphs_vision::vocabulary::BagOfWords;
 
+pub mod rows;
+
 /// The first bytes of a map file. The CR LF and the NUL catch a file mangled as text.
 pub const MAGIC: [u8; 8] = *b"VSGMAP\r\n";
 /// The payload's layout; files of another version are refused.
@@ -51,20 +53,34 @@ pub fn encode(map: &Map) -> Vec<u8> {
 }
 
 fn written(record: &MapRecord) -> Vec<u8> {
-    let payload = postcard::to_allocvec(record)
-        // The records hold only plain data, which postcard always writes.
-        .expect("a map's records serialise");
+    framed(
+        &postcard::to_allocvec(record)
+            // The records hold only plain data, which postcard always writes.
+            .expect("a map's records serialise"),
+    )
+}
+
+/// `payload` behind the file's header.
+fn framed(payload: &[u8]) -> Vec<u8> {
     let mut out = Vec::with_capacity(HEADER_LEN + payload.len());
     out.extend_from_slice(&MAGIC);
     out.extend_from_slice(&FORMAT_VERSION.to_le_bytes());
     out.extend_from_slice(&(payload.len() as u64).to_le_bytes());
-    out.extend_from_slice(&crc32fast::hash(&payload).to_le_bytes());
-    out.extend_from_slice(&payload);
+    out.extend_from_slice(&crc32fast::hash(payload).to_le_bytes());
+    out.extend_from_slice(payload);
     out
 }
 
 /// The map in the bytes of a map file, checked throughout.
 pub fn decode(bytes: &[u8]) -> Result<Map, ArchiveError> {
+    let body = checked_payload(bytes)?;
+    let record: MapRecord =
+        postcard::from_bytes(body).map_err(|e| ArchiveError::Malformed(e.to_string()))?;
+    record.into_map()
+}
+
+/// The payload of a map file whose header, length and checksum are right.
+fn checked_payload(bytes: &[u8]) -> Result<&[u8], ArchiveError> {
     if bytes.len() < MAGIC.len() || bytes[..MAGIC.len()] != MAGIC {
         return Err(ArchiveError::NotAMap);
     }
@@ -95,9 +111,7 @@ pub fn decode(bytes: &[u8]) -> Result<Map, ArchiveError> {
     if crc32fast::hash(body) != checksum {
         return Err(ArchiveError::Checksum);
     }
-    let record: MapRecord =
-        postcard::from_bytes(body).map_err(|e| ArchiveError::Malformed(e.to_string()))?;
-    record.into_map()
+    Ok(body)
 }
 
 /// A rigid pose: unit quaternion (x, y, z, w) and translation, stored as computed (not
@@ -217,98 +231,17 @@ struct BagRecord {
 
 impl MapRecord {
     fn of(map: &Map) -> Self {
-        let v3 = |v: &Vector3<f64>| [v.x, v.y, v.z];
         Self {
-            rig: map.rig.as_ref().map(|r| RigRecord {
-                camera: [r.camera.fx, r.camera.fy, r.camera.cx, r.camera.cy],
-                width: r.width,
-                height: r.height,
-                bf: r.bf,
-                depth_residual: match r.depth_residual {
-                    DepthResidual::Disparity => 0,
-                    DepthResidual::RightImage => 1,
-                },
-                close_depth: r.close_depth,
-                scale_factor: r.scale_factor,
-                levels: r.levels as u32,
-            }),
-            keyframes: map
-                .keyframes
-                .iter()
-                .map(|k| KeyFrameRecord {
-                    timestamp_ns: k.frame.timestamp_ns,
-                    world_from_camera: pose_record(&k.world_from_camera),
-                    keypoints: k
-                        .frame
-                        .keypoints
-                        .iter()
-                        .map(|p| KeypointRecord {
-                            x: p.x,
-                            y: p.y,
-                            level: p.level,
-                            angle: p.angle,
-                            depth: p.depth,
-                            right_x: p.right_x,
-                        })
-                        .collect(),
-                    descriptors: k.frame.descriptors.clone(),
-                    markers: k
-                        .frame
-                        .markers
-                        .iter()
-                        .map(|s| SightingRecord {
-                            id: s.id,
-                            side_m: s.side_m,
-                            corners: s.corners.map(|c| [c.x, c.y]),
-                            camera_from_marker: s.camera_from_marker.as_ref().map(pose_record),
-                            corner_depths: s.corner_depths,
-                        })
-                        .collect(),
-                    points: k.points.iter().map(|p| p.map(|p| p.0)).collect(),
-                    parent: k.parent.as_ref().map(|(p, pose)| (p.0, pose_record(pose))),
-                })
-                .collect(),
-            points: map
-                .points
-                .iter()
-                .map(|p| PointRecord {
-                    position: v3(&p.position),
-                    descriptor: p.descriptor,
-                    observations: ids(&p.observations),
-                    normal: v3(&p.normal),
-                    min_distance: p.min_distance,
-                    max_distance: p.max_distance,
-                    visible: p.visible,
-                    found: p.found,
-                    first_keyframe: p.first_keyframe.0,
-                    bad: p.bad,
-                })
-                .collect(),
-            markers: map
-                .markers
-                .values()
-                .map(|m| MarkerRecord {
-                    id: m.id,
-                    side_m: m.side_m,
-                    world_from_marker: pose_record(&m.world_from_marker),
-                    observations: ids(&m.observations),
-                })
-                .collect(),
-            loop_edges: map
-                .loop_edges
-                .iter()
-                .map(|e| LoopRecord {
-                    older: e.older.0,
-                    newer: e.newer.0,
-                    older_from_newer: pose_record(&e.older_from_newer),
-                    inliers: e.inliers as u64,
-                })
-                .collect(),
+            rig: map.rig.as_ref().map(rig_record),
+            keyframes: map.keyframes.iter().map(keyframe_record).collect(),
+            points: map.points.iter().map(point_record).collect(),
+            markers: map.markers.values().map(marker_record).collect(),
+            loop_edges: map.loop_edges.iter().map(loop_record).collect(),
             trajectory_starts: map.trajectory_starts.iter().map(|k| k.0).collect(),
             neighbours: map
                 .neighbours
                 .iter()
-                .map(|n| n.iter().map(|&(k, w)| (k.0, w as u32)).collect())
+                .map(|n| neighbours_record(n))
                 .collect(),
             places_by_word: map
                 .places
@@ -320,12 +253,7 @@ impl MapRecord {
                 .places
                 .bags
                 .iter()
-                .map(|b| {
-                    b.as_ref().map(|b| BagRecord {
-                        words: b.words.clone(),
-                        features_by_node: b.features_by_node.clone(),
-                    })
-                })
+                .map(|b| b.as_ref().map(bag_record))
                 .collect(),
         }
     }
@@ -586,6 +514,111 @@ impl MapRecord {
     }
 }
 
+fn v3(v: &Vector3<f64>) -> [f64; 3] {
+    [v.x, v.y, v.z]
+}
+
+fn rig_record(r: &Rig) -> RigRecord {
+    RigRecord {
+        camera: [r.camera.fx, r.camera.fy, r.camera.cx, r.camera.cy],
+        width: r.width,
+        height: r.height,
+        bf: r.bf,
+        depth_residual: match r.depth_residual {
+            DepthResidual::Disparity => 0,
+            DepthResidual::RightImage => 1,
+        },
+        close_depth: r.close_depth,
+        scale_factor: r.scale_factor,
+        levels: r.levels as u32,
+    }
+}
+
+fn keyframe_record(k: &KeyFrame) -> KeyFrameRecord {
+    KeyFrameRecord {
+        timestamp_ns: k.frame.timestamp_ns,
+        world_from_camera: pose_record(&k.world_from_camera),
+        keypoints: keypoint_records(&k.frame),
+        descriptors: k.frame.descriptors.clone(),
+        markers: sighting_records(&k.frame),
+        points: k.points.iter().map(|p| p.map(|p| p.0)).collect(),
+        parent: k.parent.as_ref().map(|(p, pose)| (p.0, pose_record(pose))),
+    }
+}
+
+fn keypoint_records(frame: &Frame) -> Vec<KeypointRecord> {
+    frame
+        .keypoints
+        .iter()
+        .map(|p| KeypointRecord {
+            x: p.x,
+            y: p.y,
+            level: p.level,
+            angle: p.angle,
+            depth: p.depth,
+            right_x: p.right_x,
+        })
+        .collect()
+}
+
+fn sighting_records(frame: &Frame) -> Vec<SightingRecord> {
+    frame
+        .markers
+        .iter()
+        .map(|s| SightingRecord {
+            id: s.id,
+            side_m: s.side_m,
+            corners: s.corners.map(|c| [c.x, c.y]),
+            camera_from_marker: s.camera_from_marker.as_ref().map(pose_record),
+            corner_depths: s.corner_depths,
+        })
+        .collect()
+}
+
+fn point_record(p: &MapPoint) -> PointRecord {
+    PointRecord {
+        position: v3(&p.position),
+        descriptor: p.descriptor,
+        observations: ids(&p.observations),
+        normal: v3(&p.normal),
+        min_distance: p.min_distance,
+        max_distance: p.max_distance,
+        visible: p.visible,
+        found: p.found,
+        first_keyframe: p.first_keyframe.0,
+        bad: p.bad,
+    }
+}
+
+fn marker_record(m: &MapMarker) -> MarkerRecord {
+    MarkerRecord {
+        id: m.id,
+        side_m: m.side_m,
+        world_from_marker: pose_record(&m.world_from_marker),
+        observations: ids(&m.observations),
+    }
+}
+
+fn loop_record(e: &LoopEdge) -> LoopRecord {
+    LoopRecord {
+        older: e.older.0,
+        newer: e.newer.0,
+        older_from_newer: pose_record(&e.older_from_newer),
+        inliers: e.inliers as u64,
+    }
+}
+
+fn neighbours_record(list: &[(KeyFrameId, usize)]) -> Vec<(u32, u32)> {
+    list.iter().map(|&(k, w)| (k.0, w as u32)).collect()
+}
+
+fn bag_record(b: &BagOfWords) -> BagRecord {
+    BagRecord {
+        words: b.words.clone(),
+        features_by_node: b.features_by_node.clone(),
+    }
+}
+
 fn ids(observations: &[(KeyFrameId, usize)]) -> Vec<(u32, u32)> {
     observations.iter().map(|&(k, i)| (k.0, i as u32)).collect()
 }
@@ -628,13 +661,13 @@ fn rig_of(r: &RigRecord) -> Result<Rig, ArchiveError> {
 }
 
 #[cfg(test)]
-mod tests {
+pub(crate) mod tests {
     use super::*;
     use crate::frame::tests::rig;
     use crate::map::tests::frame;
 
     /// Two keyframes that share a point, a marker seen by the first, a loop between them.
-    fn small_map() -> Map {
+    pub(crate) fn small_map() -> Map {
         let rig = rig();
         let mut map = Map {
             rig: Some(rig.clone()),
@@ -761,5 +794,39 @@ mod tests {
         bytes[20..24].copy_from_slice(&crc32fast::hash(&payload).to_le_bytes());
         bytes.extend_from_slice(&payload);
         assert!(matches!(decode(&bytes), Err(ArchiveError::Malformed(_))));
+    }
+
+    proptest::proptest! {
+        #![proptest_config(proptest::prelude::ProptestConfig::with_cases(2000))]
+
+        /// Any bytes at all: refused or read, never a panic.
+        #[test]
+        fn arbitrary_bytes_never_panic(bytes in proptest::collection::vec(proptest::prelude::any::<u8>(), 0..256)) {
+            let _ = decode(&bytes);
+            let mut framed_bytes = MAGIC.to_vec();
+            framed_bytes.extend_from_slice(&bytes);
+            let _ = decode(&framed_bytes);
+        }
+
+        /// A valid map's payload changed in a few places and cut, behind a header and checksum
+        /// made for it (what a buggy or hostile writer makes): refused with a reason or read
+        /// as a consistent map, never a panic.
+        #[test]
+        fn changed_payloads_with_valid_checksums_never_panic(
+            edits in proptest::collection::vec((proptest::prelude::any::<usize>(), 1u8..=255), 1..6),
+            cut in 0usize..48,
+        ) {
+            let mut payload = postcard::to_allocvec(&MapRecord::of(&small_map())).unwrap();
+            for (at, x) in edits {
+                let i = at % payload.len();
+                payload[i] ^= x;
+            }
+            payload.truncate(payload.len() - cut.min(payload.len()));
+            if let Ok(map) = decode(&framed(&payload)) {
+                // What was read is a map that can be written again and reads back the same.
+                let again = decode(&encode(&map)).unwrap();
+                proptest::prop_assert_eq!(format!("{again:?}"), format!("{map:?}"));
+            }
+        }
     }
 }

@@ -53,6 +53,7 @@ fn summary(state: &ApiState, id: MapId, view: &MapView) -> MapSummary {
         doorways: view.doorways.len() as u64,
         rooms: count(SpaceKind::Room),
         corridors: count(SpaceKind::Corridor),
+        stored_keyframes: state.maps.stored_keyframes(id).map(u64::from),
     }
 }
 

@@ -4,6 +4,7 @@
 //! Handlers only read the registry's current state and the maps' latest snapshots; they never
 //! wait on processing.
 
+pub mod access;
 pub mod dictionary;
 pub mod maps;
 
@@ -155,8 +156,14 @@ pub fn openapi_json() -> String {
         .expect("the OpenAPI document serialises")
 }
 
-/// The `/api/v1` routes; map files up to `max_map_file_bytes` are taken.
-pub fn router(registry: Arc<Registry>, maps: MapService, max_map_file_bytes: usize) -> Router {
+/// The `/api/v1` routes, behind `access`'s tokens; map files up to `max_map_file_bytes` are
+/// taken.
+pub fn router(
+    registry: Arc<Registry>,
+    maps: MapService,
+    max_map_file_bytes: usize,
+    access: access::Access,
+) -> Router {
     Router::new()
         .route("/api/v1/health", get(health))
         .route("/api/v1/robots", get(list_robots))
@@ -200,6 +207,7 @@ pub fn router(registry: Arc<Registry>, maps: MapService, max_map_file_bytes: usi
             get(|| async { ([("content-type", "application/json")], openapi_json()) }),
         )
         .route("/api/{*rest}", get(unknown_endpoint))
+        .layer(axum::middleware::from_fn_with_state(access, access::check))
         .with_state(ApiState { registry, maps })
 }
 
@@ -452,7 +460,7 @@ mod tests {
     async fn unknown_things_are_json_404s() {
         let registry = Arc::new(Registry::new(4, 4, true));
         registry.get_or_insert("known").unwrap();
-        let app = router(registry, MapService::new(), 1 << 20);
+        let app = router(registry, MapService::new(), 1 << 20, Default::default());
         let (status, body) = get_json(app.clone(), "/api/v1/robots/ghost").await;
         assert_eq!(
             (status, body["error"].as_str()),
@@ -495,10 +503,135 @@ mod tests {
         (status, String::from_utf8(bytes.to_vec()).unwrap())
     }
 
+    /// `method uri` with `token` as a bearer token: the status and the error code.
+    async fn with_token(
+        app: Router,
+        method: &str,
+        uri: &str,
+        token: Option<&str>,
+    ) -> (StatusCode, String) {
+        let mut request = Request::builder().method(method).uri(uri);
+        if let Some(token) = token {
+            request = request.header("authorization", format!("Bearer {token}"));
+        }
+        let response = app
+            .oneshot(request.body(Body::empty()).unwrap())
+            .await
+            .unwrap();
+        let status = response.status();
+        let bytes = axum::body::to_bytes(response.into_body(), 1 << 20)
+            .await
+            .unwrap();
+        let body: serde_json::Value = serde_json::from_slice(&bytes).unwrap_or_default();
+        (status, body["error"].as_str().unwrap_or("").to_owned())
+    }
+
+    #[tokio::test]
+    async fn tokens_guard_changes_and_reading() {
+        let app = |access| {
+            router(
+                Arc::new(Registry::new(4, 4, true)),
+                MapService::new(),
+                1 << 20,
+                access,
+            )
+        };
+        // An admin token alone: changes need it, reading is open.
+        let admin_only = app(access::Access::new("adm1n", ""));
+        let unauthorized = (StatusCode::UNAUTHORIZED, "unauthorized".to_owned());
+        assert_eq!(
+            with_token(admin_only.clone(), "DELETE", "/api/v1/dictionary", None).await,
+            unauthorized
+        );
+        assert_eq!(
+            with_token(admin_only.clone(), "POST", "/api/v1/maps", Some("guess")).await,
+            unauthorized
+        );
+        assert_eq!(
+            with_token(
+                admin_only.clone(),
+                "PUT",
+                "/api/v1/dictionary",
+                Some("adm1")
+            )
+            .await,
+            unauthorized
+        );
+        assert_eq!(
+            with_token(
+                admin_only.clone(),
+                "DELETE",
+                "/api/v1/dictionary",
+                Some("adm1n")
+            )
+            .await
+            .0,
+            StatusCode::NO_CONTENT
+        );
+        assert_eq!(
+            with_token(admin_only.clone(), "GET", "/api/v1/maps", None)
+                .await
+                .0,
+            StatusCode::OK
+        );
+
+        // Both: reading needs either token, changing the admin one.
+        let both = app(access::Access::new("adm1n", "r3ad"));
+        assert_eq!(
+            with_token(both.clone(), "GET", "/api/v1/maps", None).await,
+            unauthorized
+        );
+        assert_eq!(
+            with_token(both.clone(), "GET", "/api/v1/robots/x", Some("nope")).await,
+            unauthorized
+        );
+        assert_eq!(
+            with_token(both.clone(), "GET", "/api/v1/maps", Some("r3ad"))
+                .await
+                .0,
+            StatusCode::OK
+        );
+        assert_eq!(
+            with_token(both.clone(), "GET", "/api/v1/maps", Some("adm1n"))
+                .await
+                .0,
+            StatusCode::OK
+        );
+        assert_eq!(
+            with_token(both.clone(), "DELETE", "/api/v1/dictionary", Some("r3ad")).await,
+            (StatusCode::FORBIDDEN, "forbidden".to_owned())
+        );
+        // Monitors reach the health check without one; unknown paths say nothing without one.
+        assert_eq!(
+            with_token(both.clone(), "GET", "/api/v1/health", None)
+                .await
+                .0,
+            StatusCode::OK
+        );
+        assert_eq!(
+            with_token(both, "GET", "/api/v1/nothing", None).await,
+            unauthorized
+        );
+
+        // No tokens: everything open (one machine).
+        let open = app(access::Access::new("", ""));
+        assert_eq!(
+            with_token(open, "DELETE", "/api/v1/dictionary", None)
+                .await
+                .0,
+            StatusCode::NO_CONTENT
+        );
+    }
+
     #[tokio::test]
     async fn the_dictionary_is_replaced_checked_and_removed_at_run_time() {
         let maps = MapService::new();
-        let app = router(Arc::new(Registry::new(4, 4, true)), maps.clone(), 1 << 20);
+        let app = router(
+            Arc::new(Registry::new(4, 4, true)),
+            maps.clone(),
+            1 << 20,
+            Default::default(),
+        );
         let (status, body) = get_json(app.clone(), "/api/v1/dictionary").await;
         assert_eq!(
             (status, body["error"].as_str()),
@@ -547,7 +680,7 @@ mod tests {
     async fn openapi_lists_every_route() {
         let registry = Arc::new(Registry::new(4, 4, true));
         let (status, doc) = get_json(
-            router(registry, MapService::new(), 1 << 20),
+            router(registry, MapService::new(), 1 << 20, Default::default()),
             "/api/v1/openapi.json",
         )
         .await;
@@ -578,7 +711,12 @@ mod tests {
     #[tokio::test]
     async fn a_map_file_beyond_the_limit_or_not_a_map_is_refused() {
         let maps = MapService::new();
-        let app = router(Arc::new(Registry::new(4, 4, true)), maps.clone(), 1000);
+        let app = router(
+            Arc::new(Registry::new(4, 4, true)),
+            maps.clone(),
+            1000,
+            Default::default(),
+        );
         let (status, _) = send(app.clone(), "POST", "/api/v1/maps", &"x".repeat(1001)).await;
         assert_eq!(status, StatusCode::PAYLOAD_TOO_LARGE);
         let (status, body) = send(app.clone(), "POST", "/api/v1/maps", "VSGMAP\r\n").await;
