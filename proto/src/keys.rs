@@ -22,6 +22,11 @@ pub fn frames(robot_id: &str) -> String {
     format!("{ROBOTS}{robot_id}/frames")
 }
 
+/// Key expression matching everything `robot_id` publishes or declares.
+pub fn robot(robot_id: &str) -> String {
+    format!("{ROBOTS}{robot_id}/**")
+}
+
 /// Key expression of `robot_id`'s liveliness token.
 pub fn alive(robot_id: &str) -> String {
     format!("{ROBOTS}{robot_id}/alive")

@@ -51,6 +51,15 @@ struct StreamArgs {
     /// The server's HTTP address: at the end, print what it made of the frames.
     #[arg(long)]
     server: Option<String>,
+    /// The site's certificate authority (PEM), for a server on a tls/ endpoint.
+    #[arg(long)]
+    tls_ca: Option<std::path::PathBuf>,
+    /// This robot's certificate (PEM; its common name is the robot's id) and key, for a server
+    /// that asks robots for certificates.
+    #[arg(long, requires = "tls_key")]
+    tls_certificate: Option<std::path::PathBuf>,
+    #[arg(long, requires = "tls_certificate")]
+    tls_key: Option<std::path::PathBuf>,
 }
 
 impl StreamArgs {
@@ -58,6 +67,12 @@ impl StreamArgs {
         ZenohSettings {
             connect: self.connect.clone(),
             multicast_scouting: self.scout,
+            tls: vsgraphs_sdk::zenoh_config::TlsSettings {
+                root_ca_certificate: self.tls_ca.clone().unwrap_or_default(),
+                certificate: self.tls_certificate.clone().unwrap_or_default(),
+                private_key: self.tls_key.clone().unwrap_or_default(),
+                mutual: self.tls_certificate.is_some(),
+            },
             ..ZenohSettings::default()
         }
     }

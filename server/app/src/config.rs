@@ -18,6 +18,7 @@ pub use vsgraphs_sdk::zenoh_config::ZenohSettings;
 #[serde(default, deny_unknown_fields)]
 pub struct Config {
     pub http: HttpConfig,
+    #[serde(deserialize_with = "zenoh_section")]
     pub zenoh: ZenohSettings,
     pub ingest: IngestConfig,
     pub markers: MarkerConfig,
@@ -31,10 +32,7 @@ impl Default for Config {
     fn default() -> Self {
         Self {
             http: HttpConfig::default(),
-            zenoh: ZenohSettings {
-                listen: vec!["tcp/0.0.0.0:7447".into()],
-                ..ZenohSettings::default()
-            },
+            zenoh: server_zenoh(),
             ingest: IngestConfig::default(),
             markers: MarkerConfig::default(),
             tracking: TrackingConfig::default(),
@@ -43,6 +41,48 @@ impl Default for Config {
             store: StoreConfig::default(),
         }
     }
+}
+
+/// The server's zenoh settings by default: a robot's, listening on every interface.
+fn server_zenoh() -> ZenohSettings {
+    ZenohSettings {
+        listen: vec!["tcp/0.0.0.0:7447".into()],
+        ..ZenohSettings::default()
+    }
+}
+
+/// `[zenoh]` with the fields a file leaves out at the server's defaults (the shared settings
+/// type has none of its own: robots and the server differ).
+fn zenoh_section<'de, D: serde::Deserializer<'de>>(d: D) -> Result<ZenohSettings, D::Error> {
+    #[derive(Deserialize)]
+    #[serde(default, deny_unknown_fields)]
+    struct Section {
+        mode: String,
+        listen: Vec<String>,
+        connect: Vec<String>,
+        multicast_scouting: bool,
+        tls: vsgraphs_sdk::zenoh_config::TlsSettings,
+    }
+    impl Default for Section {
+        fn default() -> Self {
+            let z = server_zenoh();
+            Self {
+                mode: z.mode,
+                listen: z.listen,
+                connect: z.connect,
+                multicast_scouting: z.multicast_scouting,
+                tls: z.tls,
+            }
+        }
+    }
+    let s = Section::deserialize(d)?;
+    Ok(ZenohSettings {
+        mode: s.mode,
+        listen: s.listen,
+        connect: s.connect,
+        multicast_scouting: s.multicast_scouting,
+        tls: s.tls,
+    })
 }
 
 /// Where the maps are kept across restarts.
@@ -113,6 +153,10 @@ pub struct IngestConfig {
     /// ends and its entry goes (its maps stay), so robots that left do not hold places of
     /// `max_robots` or memory for ever.
     pub forget_after_s: f64,
+    /// With mutual TLS (`[zenoh.tls] mutual`): the robots allowed, each by the common name of
+    /// its certificate and only under that id. Empty: any robot (with a certificate of the site,
+    /// under mutual TLS) under any id.
+    pub allowed_robots: Vec<String>,
 }
 
 impl Default for IngestConfig {
@@ -123,6 +167,7 @@ impl Default for IngestConfig {
             max_robots: 64,
             max_frame_bytes: vsgraphs_pipeline::config::DEFAULT_MAX_FRAME_BYTES,
             forget_after_s: 600.0,
+            allowed_robots: Vec::new(),
         }
     }
 }
@@ -176,6 +221,17 @@ impl Config {
                     self.store.save_every_s
                 ),
             );
+        }
+        if !self.ingest.allowed_robots.is_empty() && !self.zenoh.tls.mutual {
+            return invalid(
+                "ingest.allowed_robots",
+                "needs mutual TLS ([zenoh.tls] mutual = true), which names each robot".into(),
+            );
+        }
+        for id in &self.ingest.allowed_robots {
+            if let Err(e) = vsgraphs_proto::keys::validate_robot_id(id) {
+                return invalid("ingest.allowed_robots", format!("{id:?}: {e}"));
+            }
         }
         if self.ingest.max_robots == 0 {
             return invalid("ingest.max_robots", "must be at least 1".into());
@@ -244,6 +300,37 @@ mod tests {
             .unwrap_err()
             .to_string()
             .contains("tracking.local_ba_threads"));
+        std::fs::write(&path, "[ingest]\nallowed_robots = [\"a\"]\n").unwrap();
+        let message = Config::load(&path).unwrap_err().to_string();
+        assert!(
+            message.contains("ingest.allowed_robots") && message.contains("mutual"),
+            "{message}"
+        );
+        std::fs::write(
+            &path,
+            "[ingest]\nallowed_robots = [\"a/*\"]\n[zenoh.tls]\nmutual = true\n",
+        )
+        .unwrap();
+        let message = Config::load(&path).unwrap_err().to_string();
+        assert!(message.contains("\"a/*\""), "{message}");
+        std::fs::write(&path, "[zenoh]\nlisten = [\"tls/127.0.0.1:0\"]\n").unwrap();
+        let message = Config::load(&path).unwrap_err().to_string();
+        assert!(message.contains("certificate authority"), "{message}");
+        // A partial [zenoh] keeps the server's defaults for the rest.
+        std::fs::write(&path, "[zenoh]\nconnect = [\"tcp/10.0.0.1:7447\"]\n").unwrap();
+        let zenoh = Config::load(&path).unwrap().zenoh;
+        assert_eq!(zenoh.listen, Config::default().zenoh.listen);
+        assert_eq!(zenoh.connect, ["tcp/10.0.0.1:7447"]);
+        std::fs::write(&path, "[zenoh]\nlistn = []\n").unwrap();
+        assert!(Config::load(&path)
+            .unwrap_err()
+            .to_string()
+            .contains("listn"));
+        std::fs::write(&path, "[store]\nsave_every_s = -1.0\n").unwrap();
+        assert!(Config::load(&path)
+            .unwrap_err()
+            .to_string()
+            .contains("store.save_every_s"));
         std::fs::write(&path, "[http]\nlisten = \"127.0.0.1:9000\"\n").unwrap();
         assert_eq!(Config::load(&path).unwrap().http.listen.port(), 9000);
         assert!(matches!(

@@ -6,6 +6,7 @@
 //! for CPU work. See ARCHITECTURE.md.
 
 pub mod api;
+pub mod certificates;
 pub mod config;
 pub mod detect;
 pub mod ingest;
@@ -13,6 +14,7 @@ pub mod queue;
 pub mod robots;
 pub mod simulate;
 pub mod web;
+pub mod zenoh_access;
 
 use anyhow::Context;
 use config::{Config, DropPolicy};
@@ -74,7 +76,26 @@ impl Server {
             config.ingest.queue_capacity,
             config.ingest.drop_policy == DropPolicy::DropOldest,
         ));
-        let zenoh_config = config.zenoh.to_config()?;
+        let mut zenoh_config = config.zenoh.to_config()?;
+        if !config.ingest.allowed_robots.is_empty() {
+            let rules = zenoh_access::rules(&config.ingest.allowed_robots)?;
+            zenoh_config
+                .insert_json5("access_control", &rules.to_string())
+                .map_err(|e| anyhow::anyhow!("zenoh access control: {e}"))?;
+        }
+        let open_network = config.zenoh.listen.iter().any(|e| {
+            !(e.starts_with("tls/")
+                || e.contains("/127.0.0.1:")
+                || e.contains("/[::1]:")
+                || e.contains("/localhost:"))
+        });
+        if open_network && !config.zenoh.tls.mutual {
+            tracing::warn!(
+                listen = ?config.zenoh.listen,
+                "zenoh listens beyond this machine without mutual TLS: anyone on the network \
+                 can publish frames as any robot ([zenoh.tls], [ingest] allowed_robots)"
+            );
+        }
         let session = zenoh::open(zenoh_config)
             .await
             .map_err(|e| anyhow::anyhow!("opening zenoh on {:?}: {e}", config.zenoh.listen))?;

@@ -110,6 +110,18 @@ enum Command {
         #[arg(long, default_value = "http://127.0.0.1:8080")]
         server: String,
     },
+    /// Make a site's certificates for zenoh over TLS in DIR: a certificate authority (kept if
+    /// DIR holds one, so robots can be added later), the server's certificate for the names
+    /// robots reach it by, and one certificate per robot named by its id.
+    Certificates {
+        dir: PathBuf,
+        /// A DNS name or IP address robots reach the server by (repeatable).
+        #[arg(long)]
+        host: Vec<String>,
+        /// A robot id (repeatable).
+        #[arg(long)]
+        robot: Vec<String>,
+    },
     /// Act as a robot that streams rendered markers (for demos and deployment checks).
     SimulateMarkers {
         #[arg(long, default_value = "marker-cam")]
@@ -404,6 +416,16 @@ async fn main() -> anyhow::Result<()> {
                 map.keyframes,
                 map.points,
                 map.markers
+            );
+        }
+        Command::Certificates { dir, host, robot } => {
+            let written = vsgraphs_server::certificates::make(&dir, &host, &robot)?;
+            for file in &written.files {
+                println!("wrote {}", file.display());
+            }
+            let d = dir.display();
+            println!(
+                "\nserver configuration:\n[zenoh]\nlisten = [\"tls/0.0.0.0:7447\"]\n[zenoh.tls]\nroot_ca_certificate = \"{d}/ca.pem\"\ncertificate = \"{d}/server.pem\"\nprivate_key = \"{d}/server-key.pem\"\nmutual = true\n[ingest]\nallowed_robots = [the robot ids]\n\nrobot ID: vsgraphs-robot ... --connect tls/HOST:7447 --tls-ca {d}/ca.pem --tls-certificate {d}/robot-ID.pem --tls-key {d}/robot-ID-key.pem"
             );
         }
         Command::SimulateMarkers {
