@@ -60,8 +60,12 @@ impl Server {
         let maps = if config.store.path.as_os_str().is_empty() {
             maps
         } else {
+            // Reading a store of large maps takes seconds: off the async runtime.
             let every = std::time::Duration::from_secs_f64(config.store.save_every_s);
-            maps.with_store(&config.store.path, every)
+            let path = config.store.path.clone();
+            tokio::task::spawn_blocking(move || maps.with_store(&path, every))
+                .await
+                .context("opening the map store")?
                 .context("opening the map store")?
         };
         vsgraphs_pipeline::FrameProcessor::new(
@@ -84,10 +88,7 @@ impl Server {
                 .map_err(|e| anyhow::anyhow!("zenoh access control: {e}"))?;
         }
         let open_network = config.zenoh.listen.iter().any(|e| {
-            !(e.starts_with("tls/")
-                || e.contains("/127.0.0.1:")
-                || e.contains("/[::1]:")
-                || e.contains("/localhost:"))
+            !(e.contains("/127.0.0.1:") || e.contains("/[::1]:") || e.contains("/localhost:"))
         });
         if open_network && !config.zenoh.tls.mutual {
             tracing::warn!(

@@ -596,8 +596,9 @@ impl MapService {
 
     /// Keeps the maps in the store at `path` (made if absent): the maps in it are read back now,
     /// whole and checked, with their ids, and mapped like the rest; every map's changes are
-    /// written to it at most `every` after they were made ([`crate::store`]). Call after [`MapService::with_mapping`]. A store that
-    /// cannot be read is refused whole, with what is wrong.
+    /// written to it at most `every` after they were made ([`crate::store`]). Call after
+    /// [`MapService::with_mapping`]. A store that cannot be read is refused whole, with what
+    /// is wrong.
     pub fn with_store(self, path: &std::path::Path, every: Duration) -> Result<Self, StoreError> {
         let store = Store::open(path)?;
         let started = Instant::now();
@@ -638,11 +639,6 @@ impl MapService {
     /// What the store has cost so far (`None` without a store).
     pub fn store_stats(&self) -> Option<crate::store::StoreStats> {
         Some(lock(&self.inner.saver).as_ref()?.stats())
-    }
-
-    /// Commits to the store that failed (0 without a store).
-    pub fn store_failures(&self) -> u64 {
-        lock(&self.inner.saver).as_ref().map_or(0, |s| s.failures())
     }
 
     /// A map file read back as a new map of the service (its id is returned), mapped from
@@ -925,8 +921,8 @@ impl MapService {
     }
 
     /// Adds `map` under a new id, with a writer that maps with `settings`; a map with
-    /// keyframes is published at once, its semantic layer moments later.
-    /// A map read from the store keeps its id (`stored`), which later maps' ids follow.
+    /// keyframes is published at once, its semantic layer moments later. A map read from the
+    /// store keeps its id (`stored`), which later maps' ids follow.
     fn start_map(
         &self,
         map: Map,

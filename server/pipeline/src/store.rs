@@ -18,7 +18,6 @@
 use redb::{Database, ReadableDatabase, ReadableTable, TableDefinition};
 use std::collections::{BTreeMap, BTreeSet, VecDeque};
 use std::path::{Path, PathBuf};
-use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{mpsc, Arc, Mutex};
 use std::thread::JoinHandle;
 use vsgraphs_slam::archive::rows::{self, Changes, RowKind, StoredRows};
@@ -280,6 +279,8 @@ pub struct Saver {
 #[derive(Clone, Debug, Default, serde::Serialize)]
 pub struct StoreStats {
     pub commits: u64,
+    /// Commits that failed (each logged; the writers then hand over every row again).
+    pub failures: u64,
     /// Bytes of rows committed.
     pub bytes: u64,
     /// Each commit, ms (the store's thread).
@@ -305,7 +306,6 @@ struct SaverState {
     stored: Mutex<BTreeMap<MapId, u32>>,
     /// Maps whose last rows were not written: their writers hand over every row again.
     rewrite: Mutex<BTreeSet<MapId>>,
-    failures: AtomicU64,
     stats: Mutex<StoreStats>,
 }
 
@@ -378,11 +378,6 @@ impl Saver {
         lock(&self.state.stats).clone()
     }
 
-    /// Commits that failed (each logged).
-    pub fn failures(&self) -> u64 {
-        self.state.failures.load(Ordering::Relaxed)
-    }
-
     /// Writes what was handed over and ends the thread.
     pub fn stop(&self) {
         lock(&self.sender).take();
@@ -423,7 +418,7 @@ fn save(store: &Store, saves: &mpsc::Receiver<Save>, state: &SaverState) {
                 tracing::debug!(saves = batch.len(), bytes, ms, "store committed");
             }
             Err(error) => {
-                state.failures.fetch_add(1, Ordering::Relaxed);
+                lock(&state.stats).failures += 1;
                 tracing::error!(%error, "the map store could not be written; the maps will be written whole again");
                 lock(&state.rewrite).extend(batch.iter().map(|s| s.map));
             }

@@ -129,7 +129,7 @@ impl Ledger {
             }
             let words = has_words(map, i);
             if words != self.words[i] {
-                match map.places.bags[i].as_ref() {
+                match map.places.bags.get(i).and_then(Option::as_ref) {
                     Some(bag) => {
                         changes
                             .rows
