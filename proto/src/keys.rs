@@ -10,6 +10,9 @@ use thiserror::Error;
 pub const ALL_FRAMES: &str = "vsgraphs/robots/*/frames";
 /// Key expression matching every robot's liveliness token.
 pub const ALL_ALIVE: &str = "vsgraphs/robots/*/alive";
+/// The server's liveliness token: robots see it come when the server starts and go when it
+/// stops (or its connection is lost).
+pub const SERVER_ALIVE: &str = "vsgraphs/server/alive";
 /// Longest robot id accepted, in bytes.
 pub const MAX_ROBOT_ID_LEN: usize = 64;
 /// Longest session id a frame may carry, in bytes (a UUID has 36 characters).

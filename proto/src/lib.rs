@@ -12,6 +12,7 @@ pub mod keys;
 pub mod model;
 pub mod png16;
 pub mod rvl;
+pub mod wire;
 
 /// The generated protobuf types (`vsgraphs.v1`).
 pub mod v1 {

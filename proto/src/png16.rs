@@ -80,6 +80,26 @@ mod tests {
             let decoded = decode(&encode(&depth, w, h).unwrap()).unwrap();
             prop_assert_eq!(decoded, Depth16 { width: w, height: h, data: depth });
         }
+
+        /// A valid PNG with bytes changed and cut short: decoded or refused, never a panic.
+        #[test]
+        fn corrupt_input_never_panics(
+            w in 1u32..30,
+            h in 1u32..30,
+            flips in prop::collection::vec((any::<usize>(), 1u8..=255), 1..6),
+            cut in any::<prop::sample::Index>(),
+        ) {
+            let depth: Vec<u16> = (0..w * h).map(|i| (i * 37) as u16).collect();
+            let mut bytes = encode(&depth, w, h).unwrap();
+            let n = bytes.len();
+            for (at, xor) in flips {
+                bytes[at % n] ^= xor;
+            }
+            bytes.truncate(cut.index(n + 1));
+            if let Ok(decoded) = decode(&bytes) {
+                prop_assert_eq!(decoded.data.len(), (decoded.width * decoded.height) as usize);
+            }
+        }
     }
 
     #[test]

@@ -1,13 +1,16 @@
-//! The robot's publisher: frames out over zenoh, presence through a liveliness token.
+//! The robot's publisher: frames out over zenoh, presence through a liveliness token, and the
+//! server's presence through its.
 
 use crate::zenoh_config::{ZenohConfigError, ZenohSettings};
-use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
+use std::sync::Arc;
 use std::time::{SystemTime, UNIX_EPOCH};
 use thiserror::Error;
 use vsgraphs_proto::{keys, CameraModel, ColourImage, DepthImage, Message, RgbdFrame};
 use zenoh::liveliness::LivelinessToken;
-use zenoh::pubsub::Publisher;
+use zenoh::pubsub::{Publisher, Subscriber};
 use zenoh::qos::{CongestionControl, Priority};
+use zenoh::sample::SampleKind;
 use zenoh::Session;
 
 #[derive(Debug, Error)]
@@ -72,6 +75,9 @@ pub struct Robot {
     sequence: AtomicU64,
     publisher: Publisher<'static>,
     _token: LivelinessToken,
+    /// Whether the server's liveliness token is seen, kept by `_server_watch`.
+    server_online: Arc<AtomicBool>,
+    _server_watch: Subscriber<()>,
     session: Session,
 }
 
@@ -100,6 +106,24 @@ impl Robot {
             .liveliness()
             .declare_token(keys::alive(&config.robot_id))
             .await?;
+        let server_online = Arc::new(AtomicBool::new(false));
+        let seen = server_online.clone();
+        let robot_id = config.robot_id.clone();
+        let server_watch = session
+            .liveliness()
+            .declare_subscriber(keys::SERVER_ALIVE)
+            .history(true)
+            .callback(move |sample| {
+                let online = sample.kind() == SampleKind::Put;
+                if seen.swap(online, Ordering::Relaxed) != online {
+                    if online {
+                        tracing::info!(robot_id, "server online");
+                    } else {
+                        tracing::warn!(robot_id, "server gone: stopped or unreachable");
+                    }
+                }
+            })
+            .await?;
         let session_id = config.session_id.unwrap_or_else(|| {
             let nanos = SystemTime::now()
                 .duration_since(UNIX_EPOCH)
@@ -112,6 +136,8 @@ impl Robot {
             sequence: AtomicU64::new(0),
             publisher,
             _token: token,
+            server_online,
+            _server_watch: server_watch,
             session,
         })
     }
@@ -122,6 +148,12 @@ impl Robot {
 
     pub fn session_id(&self) -> &str {
         &self.session_id
+    }
+
+    /// Whether the server is there: its liveliness token is seen. False until it is first seen,
+    /// and again once the server stops (it withdraws the token) or can no longer be reached.
+    pub fn server_online(&self) -> bool {
+        self.server_online.load(Ordering::Relaxed)
     }
 
     /// Frames published so far in this session.
@@ -170,9 +202,11 @@ impl Robot {
         let Robot {
             publisher,
             _token,
+            _server_watch,
             session,
             ..
         } = self;
+        _server_watch.undeclare().await?;
         _token.undeclare().await?;
         publisher.undeclare().await?;
         session.close().await?;

@@ -11,7 +11,9 @@ use vsgraphs_vision::synth::{render, PlacedMarker};
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn bad_frames_are_rejected_with_reasons_and_the_stream_goes_on() {
-    let test = TestServer::start().await;
+    // A frame limit of a mebibyte: this test's good frames fit, and frames beyond it are cheap.
+    const LIMIT: usize = 1 << 20;
+    let test = TestServer::start_with(|c| c.ingest.max_frame_bytes = LIMIT).await;
     let robot = test.robot("clumsy").await;
     let camera = d435();
     let dictionary = MarkerDictionary::predefined("DICT_4X4_100").unwrap();
@@ -162,13 +164,43 @@ async fn bad_frames_are_rejected_with_reasons_and_the_stream_goes_on() {
     rejected("robot_id_mismatch").await;
     good("after a frame naming another robot").await;
 
+    // Above the limit: refused before it is decoded. So is a frame within it whose IMU
+    // samples (two bytes each on the wire, a whole struct each once decoded) are too many.
+    let mut padded = colour.clone();
+    padded.data.resize(LIMIT + 1000, 0);
+    robot
+        .publish(now_ns(), model.clone(), 1000.0, padded, depth.clone())
+        .await
+        .unwrap();
+    rejected("too_large").await;
+    good("after a frame too large").await;
+    let mut samples = impostor.clone();
+    samples.robot_id = "clumsy".into();
+    samples.imu = vec![Default::default(); 100_000];
+    robot.publish_raw(samples.encode_to_vec()).await.unwrap();
+    rejected_times("too_large", 2).await;
+    good("after a frame of a hundred thousand IMU samples").await;
+    // Beyond twice the limit zenoh drops the message before it is whole: never received, so
+    // not counted; its sequence number is missing, and the stream goes on.
+    let mut huge = colour.clone();
+    huge.data.resize(3 * LIMIT, 0);
+    robot
+        .publish(now_ns(), model.clone(), 1000.0, huge, depth.clone())
+        .await
+        .unwrap();
+    // Three mebibytes on loopback take milliseconds; the next frame must not find the
+    // publisher still busy with them (it would drop it, as a live robot's does).
+    tokio::time::sleep(Duration::from_millis(500)).await;
+    good("after a frame zenoh dropped").await;
+
     let status = test.client.robot("clumsy").await.unwrap();
     let f = &status.frames;
-    assert_eq!(f.processed, 8);
-    assert_eq!(f.rejected, 8);
+    assert_eq!(f.processed, 11);
+    assert_eq!(f.rejected, 10);
     assert_eq!(f.rejected_by_reason["unknown_encoding"], 2);
+    assert_eq!(f.rejected_by_reason["too_large"], 2);
     assert_eq!(f.received, f.processed + f.rejected + f.dropped);
-    assert_eq!(f.lost, 0);
+    assert_eq!(f.lost, 1, "the frame zenoh dropped");
     assert_eq!(status.presence, Presence::Online);
     assert_eq!(ColourEncoding::Jpeg as i32, colour.encoding);
 

@@ -200,5 +200,149 @@ async fn the_api_answers_rooms_doorways_route_and_where_the_robot_is_after_seq01
     .await;
     assert!(spaces.iter().all(|s| s.name != kitchen), "{spaces:?}");
     assert_eq!(spaces.len(), 2);
+
+    let names: Vec<String> = spaces.iter().map(|s| s.name.clone()).collect();
+    hostile_requests(
+        &format!("http://{}", test.server.http_addr()),
+        map_id,
+        &names,
+    )
+    .await;
     robot.close().await.unwrap();
+}
+
+/// Requests to every route the API reads from, with path segments and query parameters as a
+/// client could get them wrong or craft them: known and unknown robots, maps and spaces, ids
+/// beyond 32 bits or negative, encoded slashes and nulls, parameters of the wrong type, at
+/// extremes, repeated or unknown. The server answers each without a server error, in JSON where
+/// it answers with a document, and goes on serving.
+async fn hostile_requests(base: &str, map_id: u32, spaces: &[String]) {
+    use proptest::prelude::*;
+    use proptest::strategy::ValueTree;
+
+    let mut known: Vec<String> = vec!["sim-1".into(), map_id.to_string()];
+    known.extend(spaces.iter().cloned());
+    let segment = prop_oneof![
+        4 => prop::sample::select(known),
+        1 => prop::sample::select(vec![
+            "0", "-1", "4294967296", "18446744073709551616", "%00", "..", "a/b", "%2F", " ", "",
+        ])
+        .prop_map(str::to_owned),
+        1 => "[ -~]{0,12}",
+        1 => any::<u32>().prop_map(|n| n.to_string()),
+    ];
+    let routes = prop::sample::select(vec![
+        "robots/*",
+        "robots/*/detections",
+        "robots/*/trajectory",
+        "robots/*/maps",
+        "robots/*/maps/*",
+        "robots/*/maps/*/model",
+        "maps/*",
+        "maps/*/file",
+        "maps/*/model",
+        "maps/*/trajectories",
+        "maps/*/spaces",
+        "maps/*/spaces/*",
+        "maps/*/doorways",
+        "maps/*/walls",
+        "maps/*/route",
+        "maps/*/graph",
+        "maps",
+        "merges",
+        "robots",
+        "dictionary",
+        "*",
+        "*/*/*",
+    ]);
+    let value = prop_oneof![
+        prop::sample::select(vec![
+            "json",
+            "tum",
+            "room",
+            "corridor",
+            "0",
+            "1",
+            "-1",
+            "4294967296",
+            "18446744073709551616",
+            "1e9",
+            "NaN",
+            "",
+            "%ZZ",
+            "true",
+        ])
+        .prop_map(str::to_owned),
+        prop::sample::select(spaces.to_vec()),
+        "[ -~]{0,10}",
+    ];
+    let parameter = (
+        prop::sample::select(vec![
+            "format",
+            "map",
+            "max_points",
+            "kind",
+            "from",
+            "to",
+            "offset",
+            "limit",
+            "x",
+        ]),
+        value,
+    );
+    let request = (
+        routes,
+        prop::collection::vec(segment, 3),
+        prop::collection::vec(parameter, 0..4),
+    );
+    let http = reqwest::Client::new();
+    let mut runner = proptest::test_runner::TestRunner::deterministic();
+    let mut statuses = std::collections::BTreeMap::new();
+    for _ in 0..400 {
+        let (route, segments, parameters) = request.new_tree(&mut runner).unwrap().current();
+        let mut url = reqwest::Url::parse(&format!("{base}/api/v1/")).unwrap();
+        {
+            let mut path = url.path_segments_mut().unwrap();
+            path.pop_if_empty();
+            let mut given = segments.iter();
+            for part in route.split('/') {
+                path.push(if part == "*" {
+                    given.next().unwrap()
+                } else {
+                    part
+                });
+            }
+        }
+        if !parameters.is_empty() {
+            let mut query = url.query_pairs_mut();
+            for (key, value) in &parameters {
+                query.append_pair(key, value);
+            }
+        }
+        let response = http.get(url.clone()).send().await.unwrap();
+        let status = response.status();
+        let json = response
+            .headers()
+            .get("content-type")
+            .is_some_and(|t| t.as_bytes().starts_with(b"application/json"));
+        let body = response.bytes().await.unwrap();
+        assert!(!status.is_server_error(), "{url}: {status} {body:?}");
+        if json {
+            serde_json::from_slice::<serde_json::Value>(&body)
+                .unwrap_or_else(|e| panic!("{url}: not JSON ({e})"));
+        }
+        if status.is_client_error() {
+            let error: serde_json::Value = serde_json::from_slice(&body)
+                .unwrap_or_else(|_| panic!("{url}: {status} without a JSON error: {body:?}"));
+            assert!(error["error"].is_string(), "{url}: {error}");
+        }
+        *statuses.entry(status.as_u16()).or_insert(0) += 1;
+    }
+    eprintln!("hostile requests by status: {statuses:?}");
+    let health = http
+        .get(format!("{base}/api/v1/health"))
+        .send()
+        .await
+        .unwrap();
+    assert!(health.status().is_success());
 }

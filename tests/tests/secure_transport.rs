@@ -149,11 +149,15 @@ async fn refusals(acl: bool) -> Vec<String> {
         .into_iter()
         .map(|r| r.robot_id)
         .collect();
-    // The good robot's liveliness passes the rules too.
+    // The good robot's liveliness passes the rules too, and it sees the server's.
     assert_eq!(
         test.client.robot("good").await.unwrap().presence,
         vsgraphs_proto::api::Presence::Online
     );
+    wait_for("the server seen", Duration::from_secs(10), || async {
+        good.server_online().then_some(())
+    })
+    .await;
     eprintln!(
         "access rules {acl}: {tried} robots opened a zenoh session; the server heard of {heard:?}"
     );

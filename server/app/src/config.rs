@@ -148,6 +148,7 @@ pub struct IngestConfig {
     pub queue_capacity: usize,
     pub drop_policy: DropPolicy,
     pub max_robots: usize,
+    /// Frames above it are refused (`too_large`); zenoh drops messages above twice it whole.
     pub max_frame_bytes: usize,
     /// A robot neither online nor heard from for this long is forgotten, seconds: its worker
     /// ends and its entry goes (its maps stay), so robots that left do not hold places of
@@ -171,6 +172,10 @@ impl Default for IngestConfig {
         }
     }
 }
+
+/// The longest wait allowed between a keyframe and its save: an hour of mapping at risk is
+/// already more than a store is for.
+pub const MAX_SAVE_EVERY_S: f64 = 3600.0;
 
 #[derive(Debug, Error)]
 pub enum ConfigError {
@@ -213,11 +218,11 @@ impl Config {
                 ),
             );
         }
-        if !(self.store.save_every_s.is_finite() && self.store.save_every_s >= 0.0) {
+        if !(0.0..=MAX_SAVE_EVERY_S).contains(&self.store.save_every_s) {
             return invalid(
                 "store.save_every_s",
                 format!(
-                    "must be a number of seconds, 0 or more, not {}",
+                    "must be a number of seconds from 0 to {MAX_SAVE_EVERY_S}, not {}",
                     self.store.save_every_s
                 ),
             );

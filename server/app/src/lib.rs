@@ -34,13 +34,24 @@ pub struct Server {
     http_addr: SocketAddr,
     ingest: Ingest,
     session: zenoh::Session,
+    /// Robots see the server by it ([`vsgraphs_proto::keys::SERVER_ALIVE`]).
+    alive: zenoh::liveliness::LivelinessToken,
     http: JoinHandle<std::io::Result<()>>,
     stop_http: oneshot::Sender<()>,
 }
 
+/// What a configuration makes before the server touches the network: its maps (the store
+/// read), the robots' table and zenoh's settings.
+pub struct Prepared {
+    pub maps: MapService,
+    pub registry: Arc<Registry>,
+    pub zenoh_config: zenoh::Config,
+}
+
 impl Server {
-    /// Checks the configuration, opens zenoh, starts ingest and the HTTP server.
-    pub async fn start(config: Config) -> anyhow::Result<Self> {
+    /// Checks `config` and builds everything it sets up short of the network: a configuration
+    /// that fails does so here, with the setting that is wrong.
+    pub async fn prepare(config: &Config) -> anyhow::Result<Prepared> {
         config.validate()?;
         // Fail now, not in the first robot's worker, if the marker dictionary cannot load.
         let dictionary = config
@@ -81,12 +92,38 @@ impl Server {
             config.ingest.drop_policy == DropPolicy::DropOldest,
         ));
         let mut zenoh_config = config.zenoh.to_config()?;
+        // zenoh gathers a message's fragments until it is whole, by default up to a gigabyte
+        // per link. Twice the frame limit: a frame a little too large still arrives and is
+        // refused with its reason; beyond that zenoh drops it.
+        let max_message = config.ingest.max_frame_bytes.saturating_mul(2);
+        zenoh_config
+            .insert_json5(
+                "transport/link/rx/max_message_size",
+                &max_message.to_string(),
+            )
+            .map_err(|e| anyhow::anyhow!("zenoh message size: {e}"))?;
         if !config.ingest.allowed_robots.is_empty() {
             let rules = zenoh_access::rules(&config.ingest.allowed_robots)?;
             zenoh_config
                 .insert_json5("access_control", &rules.to_string())
                 .map_err(|e| anyhow::anyhow!("zenoh access control: {e}"))?;
         }
+        Ok(Prepared {
+            maps,
+            registry,
+            zenoh_config,
+        })
+    }
+}
+
+impl Server {
+    /// Checks the configuration, opens zenoh, starts ingest and the HTTP server.
+    pub async fn start(config: Config) -> anyhow::Result<Self> {
+        let Prepared {
+            maps,
+            registry,
+            zenoh_config,
+        } = Self::prepare(&config).await?;
         let open_network = config.zenoh.listen.iter().any(|e| {
             !(e.contains("/127.0.0.1:") || e.contains("/[::1]:") || e.contains("/localhost:"))
         });
@@ -108,6 +145,11 @@ impl Server {
         let ingest = Ingest::start(&session, registry.clone(), config.clone(), maps.clone())
             .await
             .map_err(|e| anyhow::anyhow!("subscribing on zenoh: {e}"))?;
+        let alive = session
+            .liveliness()
+            .declare_token(vsgraphs_proto::keys::SERVER_ALIVE)
+            .await
+            .map_err(|e| anyhow::anyhow!("declaring the server's liveliness: {e}"))?;
         let access = api::access::Access::new(&config.http.admin_token, &config.http.read_token);
         if access.admin_token.is_none() && !http_addr.ip().is_loopback() {
             tracing::warn!(
@@ -138,6 +180,7 @@ impl Server {
             http_addr,
             ingest,
             session,
+            alive,
             http,
             stop_http,
         })
@@ -148,16 +191,23 @@ impl Server {
         self.http_addr
     }
 
-    /// Closes zenoh, drains the robots' queues, stops the maps' writers, and stops HTTP.
+    /// Says goodbye to the robots (withdraws the server's liveliness), closes zenoh, drains the
+    /// robots' queues, stops the maps' writers (each hands its last changes to the store, which
+    /// commits them), and stops HTTP.
     pub async fn stop(self) -> anyhow::Result<()> {
         let Server {
             ingest,
             maps,
             session,
+            alive,
             http,
             stop_http,
             ..
         } = self;
+        alive
+            .undeclare()
+            .await
+            .map_err(|e| anyhow::anyhow!("withdrawing the server's liveliness: {e}"))?;
         session
             .close()
             .await

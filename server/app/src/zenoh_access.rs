@@ -1,7 +1,8 @@
 //! zenoh's access control for a site whose robots hold certificates: each robot may publish
 //! frames and declare its liveliness only under its own id, the common name of its certificate
 //! ([`crate::certificates`]); anything else a peer sends is refused by zenoh before it reaches
-//! ingest. The server's own declarations (its subscriptions) go out to every robot.
+//! ingest. The server's own declarations (its subscriptions, its liveliness) go out to every
+//! robot, and every robot may watch the server's liveliness.
 
 use serde_json::{json, Value};
 use vsgraphs_proto::keys;
@@ -28,6 +29,13 @@ pub fn rules(robots: &[String]) -> anyhow::Result<Value> {
         "messages": MESSAGES,
         "key_exprs": ["vsgraphs/**"],
     })];
+    rules.push(json!({
+        "id": "robots watch the server",
+        "permission": "allow",
+        "flows": ["ingress"],
+        "messages": ["declare_liveliness_subscriber", "liveliness_query"],
+        "key_exprs": [keys::SERVER_ALIVE],
+    }));
     let mut subjects = Vec::new();
     let mut policies = Vec::new();
     for (i, id) in robots.iter().enumerate() {
@@ -43,7 +51,10 @@ pub fn rules(robots: &[String]) -> anyhow::Result<Value> {
             "key_exprs": [keys::robot(id)],
         }));
         subjects.push(json!({ "id": subject, "cert_common_names": [id] }));
-        policies.push(json!({ "rules": [rule, "server to robots"], "subjects": [subject] }));
+        policies.push(json!({
+            "rules": [rule, "server to robots", "robots watch the server"],
+            "subjects": [subject],
+        }));
     }
     Ok(json!({
         "enabled": true,

@@ -1,6 +1,7 @@
 //! The server binary killed with SIGKILL in the middle of a robot's walk comes back, on the same
 //! store, with every keyframe it reported stored before the kill; the robot, connecting again,
-//! goes on mapping, and its new map joins the one read back.
+//! goes on mapping, and its new map joins the one read back. Stopped with SIGTERM, it tells the
+//! robots and comes back with every keyframe.
 
 #![cfg(unix)]
 
@@ -188,9 +189,51 @@ async fn a_server_killed_mid_walk_comes_back_with_its_stored_map() {
             .collect();
         assert_eq!(true_walls.len(), 1, "{wall:?}");
     }
+
+    // SIGTERM, by contrast, loses nothing: the server says goodbye to the robots still
+    // connected and stores every keyframe before it exits.
+    let watcher = robot(&zenoh, "watcher").await;
+    wait_for(
+        "the robot sees the server",
+        Duration::from_secs(10),
+        || async { watcher.server_online().then_some(()) },
+    )
+    .await;
+    let last = client.server_maps().await.unwrap()[0].clone();
+    let terminated = Command::new("kill")
+        .args(["-TERM", &server.id().to_string()])
+        .status()
+        .unwrap();
+    assert!(terminated.success());
+    wait_for(
+        "the robot sees the server go",
+        Duration::from_secs(30),
+        || async { (!watcher.server_online()).then_some(()) },
+    )
+    .await;
+    assert!(server.wait().unwrap().success());
+    let (mut server, client) = serve(&store, &zenoh, &dictionary);
+    let maps = client.server_maps().await.unwrap();
+    assert_eq!(maps.len(), 1, "{maps:?}");
+    assert_eq!(maps[0].id, last.id);
+    assert_eq!(
+        maps[0].keyframes, last.keyframes,
+        "{last:?} then {:?}",
+        maps[0]
+    );
+    assert_eq!(maps[0].stored_keyframes, Some(last.keyframes));
+    wait_for(
+        "the robot sees the server back",
+        Duration::from_secs(30),
+        || async { watcher.server_online().then_some(()) },
+    )
+    .await;
+    watcher.close().await.unwrap();
     let _ = server.kill();
     let _ = server.wait();
     eprintln!(
-        "before the kill {before:?} (stored {stored}); read back {back:?}; after the walk {merged:?}"
+        "before the kill {before:?} (stored {stored}); read back {back:?}; after the walk \
+         {merged:?}; after SIGTERM {:?}",
+        maps[0]
     );
 }

@@ -363,4 +363,113 @@ EDGE_SE3:QUAT 0 1 1 0 0 0 0 0 1 1 0 0 0 0 0 1 0 0 0 0 1 0 0 0 1 0 0 1 0 1
             "{err}"
         );
     }
+
+    /// A graph of `n` vertices in a ring: a chain of odometry edges and one that closes it.
+    fn ring(n: usize) -> String {
+        let mut text = String::new();
+        for i in 0..n {
+            let a = i as f64 * std::f64::consts::TAU / n as f64;
+            let (s, c) = (a / 2.0).sin_cos();
+            text += &format!(
+                "VERTEX_SE3:QUAT {i} {} {} 0 0 0 {s} {c}\n",
+                a.cos(),
+                a.sin()
+            );
+        }
+        let (s, c) = (std::f64::consts::PI / n as f64).sin_cos();
+        let information = "1 0 0 0 0 0 1 0 0 0 0 1 0 0 0 4 0 0 4 0 4";
+        for i in 0..n {
+            let j = (i + 1) % n;
+            // The measured step is a unit one along x, not the ring's chord: the graph has a
+            // cost to lower.
+            text += &format!("EDGE_SE3:QUAT {i} {j} 1 0 0 0 0 {s} {c} {information}\n");
+        }
+        text
+    }
+
+    /// A token of a g2o file, or something put in its place.
+    fn token() -> impl proptest::strategy::Strategy<Value = String> {
+        use proptest::prelude::*;
+        prop_oneof![
+            (-3i64..12).prop_map(|i| i.to_string()),
+            any::<u64>().prop_map(|i| i.to_string()),
+            Just("-1".to_owned()),
+            any::<f64>().prop_map(|f| f.to_string()),
+            Just("nan".to_owned()),
+            Just("inf".to_owned()),
+            Just("1e308".to_owned()),
+            Just("0".to_owned()),
+            Just("FIX".to_owned()),
+            Just("VERTEX_SE3:QUAT".to_owned()),
+            Just("EDGE_SE3:QUAT".to_owned()),
+            "[ -~]{0,6}",
+        ]
+    }
+
+    proptest::proptest! {
+        #![proptest_config(proptest::prelude::ProptestConfig::with_cases(
+            std::env::var("PROPTEST_CASES").ok().and_then(|n| n.parse().ok()).unwrap_or(1000)
+        ))]
+
+        /// A ring's file changed token by token (numbers at their extremes, ids that repeat or
+        /// are missing, lines cut short or repeated): refused with its line, or read, started
+        /// (chordal) and optimised as the `posegraph` command does; never a panic.
+        #[test]
+        fn changed_files_are_refused_or_optimised(
+            n in 2usize..7,
+            edits in proptest::collection::vec(
+                (proptest::prelude::any::<usize>(), proptest::prelude::any::<usize>(), 0u8..4, token()),
+                1..5,
+            ),
+        ) {
+            let mut lines: Vec<Vec<String>> = ring(n)
+                .lines()
+                .map(|l| l.split(' ').map(str::to_owned).collect())
+                .collect();
+            for (line, at, kind, token) in edits {
+                let count = lines.len();
+                let fields = &mut lines[line % count];
+                let i = at % fields.len().max(1);
+                match kind {
+                    0 if !fields.is_empty() => fields[i] = token,
+                    1 => fields.truncate(i),
+                    2 => {
+                        let copy = lines[line % count].clone();
+                        lines.push(copy);
+                    }
+                    _ => lines.push(vec!["FIX".to_owned(), token]),
+                }
+            }
+            let text: Vec<String> = lines.iter().map(|l| l.join(" ")).collect();
+            let Ok(mut graph) = PoseGraph::parse(&text.join("\n")) else {
+                return Ok(());
+            };
+            if graph.restart(Start::Chordal).is_err() {
+                return Ok(());
+            }
+            if let Ok((mut problem, _)) = graph.to_problem(PoseError::LogMap) {
+                let options = crate::solver::Options {
+                    max_iterations: 10,
+                    ..Default::default()
+                };
+                let _ = crate::solver::Solver::new(options).solve(&mut problem);
+            }
+        }
+
+        #[test]
+        fn arbitrary_text_is_refused_or_read(text in "[ -~\n]{0,300}") {
+            let _ = PoseGraph::parse(&text);
+        }
+    }
+
+    #[test]
+    fn the_ring_is_read_and_optimised() {
+        let mut graph = PoseGraph::parse(&ring(5)).unwrap();
+        graph.restart(Start::Chordal).unwrap();
+        let (mut problem, _) = graph.to_problem(PoseError::LogMap).unwrap();
+        let report = crate::solver::Solver::new(Default::default())
+            .solve(&mut problem)
+            .unwrap();
+        assert!(report.final_cost.is_finite());
+    }
 }

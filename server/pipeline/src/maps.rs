@@ -1157,6 +1157,9 @@ impl Writer {
                         }
                         if self.layer_behind > 0 && idle_since.elapsed() >= LAYER_IDLE {
                             self.guarded("the map's semantic layer", Self::publish_semantics);
+                            // A layer that failed is tried again after another idle spell,
+                            // not at once.
+                            idle_since = Instant::now();
                         }
                         continue;
                     }
@@ -1256,11 +1259,12 @@ impl Writer {
     /// Hands the rows changed since the last save to the store (if any), with the maps merged
     /// into this one since, whose rows go in the same commit.
     fn save(&mut self, retire: Vec<MapId>) {
+        // Cleared with no store too: the writer's wait for the next save ends on it.
+        self.unsaved = false;
+        self.saved_at = Instant::now();
         let Some(saver) = self.saver.clone() else {
             return;
         };
-        self.unsaved = false;
-        self.saved_at = Instant::now();
         let started = Instant::now();
         if saver.take_rewrite(self.map.id()) {
             self.ledger = Ledger::new();
@@ -1445,10 +1449,8 @@ mod tests {
         let mut service = MapService::new();
         let map = service.create_map(&settings(), 0).unwrap();
         // Statistics of a point the map does not hold: the writer panics on the index.
-        let bad = PointStatistics {
-            visible: vec![vsgraphs_slam::MapPointId(99)],
-            found: Vec::new(),
-        };
+        let mut bad = PointStatistics::default();
+        bad.seen(vsgraphs_slam::MapPointId(99));
         let request = std::panic::AssertUnwindSafe(|| {
             let _ = service.clone().request(&map, MapRequest::Flush(bad));
         });

@@ -3,7 +3,7 @@
 //! code (counted per robot in the API) and a message a user can read.
 
 use std::time::{Duration, Instant};
-use vsgraphs_proto::{keys, Message, RgbdFrame};
+use vsgraphs_proto::{keys, wire, Message, RgbdFrame};
 use vsgraphs_vision::decode::DecodeError;
 
 /// Why a frame was refused. The snake_case names are the codes counted per robot in the API.
@@ -102,6 +102,17 @@ pub fn parse(robot_id: &str, bytes: &[u8], max_frame_bytes: usize) -> Result<Rgb
                 "frame of {} bytes exceeds the {} allowed",
                 bytes.len(),
                 max_frame_bytes
+            ),
+            None,
+        ));
+    }
+    let samples = wire::count_field(bytes, wire::IMU_FIELD);
+    if samples > wire::MAX_IMU_SAMPLES {
+        return Err(reject(
+            Reason::TooLarge,
+            format!(
+                "{samples} IMU samples exceed the {} allowed per frame",
+                wire::MAX_IMU_SAMPLES
             ),
             None,
         ));

@@ -19,6 +19,7 @@ use crate::merge;
 use crate::triangulation;
 use crate::walls::WallPrior;
 use crate::worker::Worker;
+use rustc_hash::FxHashMap;
 use std::collections::HashSet;
 use std::time::{Duration, Instant};
 use vsgraphs_optim::Se3;
@@ -58,20 +59,51 @@ pub struct MappingConfig {
 
 /// Map points that tracked frames projected into view (`visible`) and matched as inliers
 /// (`found`), ORB-SLAM's statistics for culling recent points. Trackers gather them and hand
-/// them to the map's writer with their next request; nothing reads them in between.
+/// them to the map's writer with their next request; nothing reads them in between. Kept as
+/// counts per point, so that a robot that maps nothing new for a long while (parked, looking
+/// at what it mapped) holds one entry per point it sees, not one per point and frame.
 #[derive(Clone, Debug, Default, PartialEq)]
 pub struct PointStatistics {
-    pub visible: Vec<MapPointId>,
-    pub found: Vec<MapPointId>,
+    visible: FxHashMap<MapPointId, u32>,
+    found: FxHashMap<MapPointId, u32>,
 }
 
 impl PointStatistics {
-    fn apply(self, map: &mut Map) {
-        for p in self.visible {
-            map.point_mut(p).visible += 1;
+    /// `point` was in view of a tracked frame.
+    pub fn seen(&mut self, point: MapPointId) {
+        *self.visible.entry(point).or_default() += 1;
+    }
+
+    /// `point` matched a tracked frame as an inlier.
+    pub fn found(&mut self, point: MapPointId) {
+        *self.found.entry(point).or_default() += 1;
+    }
+
+    /// Points counted, each once per list.
+    pub fn len(&self) -> usize {
+        self.visible.len() + self.found.len()
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
+
+    /// The counts of points that became others (a merge moved them).
+    pub fn rename(&mut self, new: impl Fn(MapPointId) -> MapPointId) {
+        for counts in [&mut self.visible, &mut self.found] {
+            let old = std::mem::take(counts);
+            for (p, n) in old {
+                *counts.entry(new(p)).or_default() += n;
+            }
         }
-        for p in self.found {
-            map.point_mut(p).found += 1;
+    }
+
+    fn apply(self, map: &mut Map) {
+        for (p, n) in self.visible {
+            map.point_mut(p).visible += n;
+        }
+        for (p, n) in self.found {
+            map.point_mut(p).found += n;
         }
     }
 }
@@ -614,6 +646,35 @@ fn newest_live(map: &Map) -> Option<KeyFrameId> {
 mod tests {
     use super::*;
     use nalgebra::Vector3;
+
+    /// A robot that tracks the same points frame after frame holds one count per point; the
+    /// counts reach the points whole, and follow points a merge renames.
+    #[test]
+    fn point_statistics_count_per_point() {
+        let rig = crate::frame::tests::rig();
+        let mut map = map_at(&[0.0]);
+        let points: Vec<MapPointId> = (0..3)
+            .map(|i| map.add_point(Vector3::new(0.0, 0.0, 2.0), KeyFrameId(0), i, &rig))
+            .collect();
+        let mut statistics = PointStatistics::default();
+        for _ in 0..10_000 {
+            for &p in &points {
+                statistics.seen(p);
+            }
+            statistics.found(points[0]);
+        }
+        assert_eq!(statistics.len(), 4);
+        // Point 2 became point 1.
+        statistics.rename(|p| if p == points[2] { points[1] } else { p });
+        assert_eq!(statistics.len(), 3);
+        statistics.apply(&mut map);
+        let counts: Vec<(u32, u32)> = points
+            .iter()
+            .map(|&p| (map.point(p).visible, map.point(p).found))
+            .collect();
+        // A new point starts counted once each, for the keyframe that made it.
+        assert_eq!(counts, [(10_001, 10_001), (20_001, 1), (1, 1)]);
+    }
 
     /// Keyframes along x at the given positions, metres, seeing nothing.
     fn map_at(xs: &[f64]) -> Map {

@@ -130,6 +130,15 @@ impl PoseEstimator {
         for (rvec, tvec) in rvecs.iter().zip(tvecs.iter()) {
             solutions.push(self.solution(&rvec, &tvec, &image_points)?);
         }
+        // A camera with extreme (if finite) intrinsics or distortion can make OpenCV's
+        // solutions overflow; such a solution explains nothing.
+        solutions.retain(|s| {
+            s.matrix
+                .iter()
+                .chain(s.translation.iter())
+                .all(|v| v.is_finite())
+                && s.reprojection_error_px.is_finite()
+        });
         solutions.sort_by(|a, b| a.reprojection_error_px.total_cmp(&b.reprojection_error_px));
         let Some(best) = solutions.first() else {
             return Err(CvError(opencv::Error::new(
@@ -195,7 +204,15 @@ impl PoseEstimator {
         }
         let matrix = chosen.matrix;
         let reprojection_error_px = chosen.reprojection_error_px;
-        let rotation = UnitQuaternion::from_rotation_matrix(&Rotation3::from_matrix(&matrix));
+        // Rodrigues' matrix is a rotation up to rounding; the nearest rotation is found as
+        // nalgebra's `from_matrix` finds it, but in a bounded number of steps (unbounded, it
+        // never ends on a matrix that is not finite).
+        let rotation = UnitQuaternion::from_rotation_matrix(&Rotation3::from_matrix_eps(
+            &matrix,
+            f64::EPSILON,
+            100,
+            Rotation3::identity(),
+        ));
         Ok(MarkerPoseEstimate {
             camera_from_marker: Isometry3::from_parts(Translation3::from(translation), rotation),
             reprojection_error_px,

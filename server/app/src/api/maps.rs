@@ -3,8 +3,9 @@
 //! of them by id or name, its doorways and walls, its Situational Graph in one document, and the
 //! route between two spaces.
 
+use super::extract::{Path, Query};
 use super::{ApiState, Failure};
-use axum::extract::{Path, Query, State};
+use axum::extract::State;
 use axum::http::{header, StatusCode};
 use axum::response::IntoResponse;
 use axum::Json;

@@ -6,14 +6,16 @@
 
 pub mod access;
 pub mod dictionary;
+pub mod extract;
 pub mod maps;
 
 use crate::robots::Registry;
-use axum::extract::{DefaultBodyLimit, FromRef, Path, Query, State};
+use axum::extract::{DefaultBodyLimit, FromRef, State};
 use axum::http::StatusCode;
 use axum::response::{IntoResponse, Response};
 use axum::routing::get;
 use axum::{Json, Router};
+use extract::{Path, Query};
 use std::sync::Arc;
 use utoipa::OpenApi;
 use vsgraphs_pipeline::MapService;

@@ -126,7 +126,9 @@ impl LocalMapSearch {
         } else {
             self.min_inliers
         };
-        statistics.visible.extend(visible);
+        for p in visible {
+            statistics.seen(p);
+        }
         if refined.inliers < needed {
             tracing::debug!(
                 stamp_ns = frame.timestamp_ns,
@@ -139,7 +141,7 @@ impl LocalMapSearch {
         let mut inliers: Vec<Option<MapPointId>> = vec![None; frame.len()];
         for &(i, source) in &refined.pairs {
             if let Source::Point(p) = source {
-                statistics.found.push(p);
+                statistics.found(p);
                 inliers[i] = Some(p);
             }
         }

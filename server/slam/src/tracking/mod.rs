@@ -658,10 +658,7 @@ impl Tracker {
             }
         }
         self.reference = self.reference.map(|k| moved.keyframe(k));
-        let statistics = &mut self.statistics;
-        for p in statistics.visible.iter_mut().chain(&mut statistics.found) {
-            *p = moved.point(*p);
-        }
+        self.statistics.rename(|p| moved.point(p));
         self.relocaliser.reset();
     }
 
