@@ -41,8 +41,12 @@ pub enum Presence {
 pub struct FrameCounters {
     pub received: u64,
     pub processed: u64,
-    /// Dropped by the server's queue because processing fell behind (see the drop policy).
+    /// Dropped by the server: by the robot's queue because processing fell behind (see the drop
+    /// policy), or on arrival because frames came faster than `[ingest] max_rate_hz`.
     pub dropped: u64,
+    /// Of `dropped`, the frames that came faster than `[ingest] max_rate_hz`.
+    #[serde(default)]
+    pub dropped_over_rate: u64,
     pub rejected: u64,
     /// Rejections by reason (snake_case reason code → count).
     pub rejected_by_reason: BTreeMap<String, u64>,
@@ -82,6 +86,11 @@ pub struct Timing {
     pub decode_ms_mean: Option<f64>,
     #[serde(default)]
     pub detection_ms_mean: Option<f64>,
+    /// How far the robot's stamps ran ahead of the server's clock over the last few seconds,
+    /// ms (stamps from the future: the robot's clock is ahead, and the latencies above are
+    /// short by as much); none when they did not.
+    #[serde(default)]
+    pub clock_ahead_ms: Option<f64>,
 }
 
 /// `GET /api/v1/robots` (a list of these) and `GET /api/v1/robots/{robot_id}`.

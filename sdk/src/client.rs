@@ -81,10 +81,25 @@ impl Client {
             .await
     }
 
-    /// Every pose tracking gave the robot, oldest first, in every map of its Atlas.
+    /// The robot's tracked poses, oldest first, in every map of its Atlas (beyond the
+    /// server's `[ingest] trajectory_poses`, older poses are thinned).
     pub async fn trajectory(&self, robot_id: &str) -> Result<Vec<TrajectoryPose>, ClientError> {
         self.get(&format!("/api/v1/robots/{robot_id}/trajectory"))
             .await
+    }
+
+    /// At most `limit` of the robot's tracked poses stamped after `after_ns`, oldest first:
+    /// pass the last stamp of one page to read the next.
+    pub async fn trajectory_page(
+        &self,
+        robot_id: &str,
+        after_ns: u64,
+        limit: usize,
+    ) -> Result<Vec<TrajectoryPose>, ClientError> {
+        self.get(&format!(
+            "/api/v1/robots/{robot_id}/trajectory?after_ns={after_ns}&limit={limit}"
+        ))
+        .await
     }
 
     /// The maps of the robot's Atlas, counts only.

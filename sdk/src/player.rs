@@ -50,6 +50,11 @@ pub struct PlayOptions {
     pub limit: Option<usize>,
     /// Keep the recorded timestamps instead of restamping from now.
     pub original_timestamps: bool,
+    /// Stamp each frame when it is sent, as a live camera would: the server's capture-to-pose
+    /// latency then means what it says at any rate (with recorded stamps it grows with the
+    /// difference between the play rate and the recording's), but the stamps no longer match
+    /// the recording's ground truth.
+    pub stamp_on_send: bool,
 }
 
 impl Default for PlayOptions {
@@ -60,6 +65,7 @@ impl Default for PlayOptions {
             loops: 1,
             limit: None,
             original_timestamps: false,
+            stamp_on_send: false,
         }
     }
 }
@@ -162,6 +168,7 @@ pub async fn play(
     };
     let mut summary = PlaySummary::default();
     let mut attempted = 0u64;
+    let mut last_stamp = 0u64;
     while let Some(loaded) = receiver.recv().await {
         let due = match options.rate {
             Rate::RealTime => Some(Duration::from_nanos(loaded.timestamp_ns)),
@@ -176,9 +183,15 @@ pub async fn play(
             Ok((colour, depth, raw_depth)) => {
                 summary.depth_bytes += depth.data.len() as u64;
                 summary.depth_raw_bytes += raw_depth;
+                let stamp = if options.stamp_on_send {
+                    now_ns().max(last_stamp + 1)
+                } else {
+                    stamp_base + loaded.timestamp_ns
+                };
+                last_stamp = stamp;
                 let (_, size) = robot
                     .publish(
-                        stamp_base + loaded.timestamp_ns,
+                        stamp,
                         dataset.camera.clone(),
                         dataset.depth_scale,
                         colour,

@@ -71,11 +71,22 @@ impl TestServer {
         }
     }
 
-    /// A robot connected to this server.
+    /// A robot connected to this server, once it sees the server: zenoh tells a new session
+    /// of the server's subscriptions a moment after it connects, and a frame published before
+    /// that goes nowhere (a live robot loses its first frames the same way). Its frames wait
+    /// for the network rather than being dropped when it is busy, as a live robot's are: the
+    /// tests are about the server, and a loaded machine must not change what arrives.
     pub async fn robot(&self, robot_id: &str) -> Robot {
-        Robot::connect(RobotConfig::connecting_to(robot_id, &self.zenoh_endpoint))
-            .await
-            .expect("the robot connects")
+        let mut config = RobotConfig::connecting_to(robot_id, &self.zenoh_endpoint);
+        config.delivery = vsgraphs_sdk::Delivery::Reliable;
+        let robot = Robot::connect(config).await.expect("the robot connects");
+        wait_for(
+            "the robot to see the server",
+            Duration::from_secs(20),
+            || async { robot.server_online().then_some(()) },
+        )
+        .await;
+        robot
     }
 }
 

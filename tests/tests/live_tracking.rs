@@ -3,7 +3,7 @@
 //! the same files, and the API reports the robot's tracking.
 
 use std::time::Duration;
-use vsgraphs_proto::api::TrackingState;
+use vsgraphs_proto::api::{TrackingState, TrajectoryPose};
 use vsgraphs_sdk::player::{play, PlayOptions, Rate};
 use vsgraphs_sdk::proto::DepthEncoding;
 use vsgraphs_sdk::{dataset, Delivery, Robot, RobotConfig};
@@ -118,6 +118,22 @@ async fn live_tracking_matches_the_offline_run() {
             &b.world_from_camera,
         ));
     }
+    // Read in pages of 7, the same poses.
+    let mut paged = Vec::new();
+    loop {
+        let after = paged.last().map_or(0, |p: &TrajectoryPose| p.timestamp_ns);
+        let page = test
+            .client
+            .trajectory_page("kinect", after, 7)
+            .await
+            .unwrap();
+        assert!(page.len() <= 7);
+        if page.is_empty() {
+            break;
+        }
+        paged.extend(page);
+    }
+    assert_eq!(paged, live);
     eprintln!(
         "{FRAMES} frames live and offline: largest difference {worst:e}; {} keyframes",
         summary.keyframes

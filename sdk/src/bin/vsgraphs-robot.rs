@@ -99,6 +99,10 @@ enum Command {
         /// Keep the recorded timestamps instead of stamping from now.
         #[arg(long)]
         original_timestamps: bool,
+        /// Stamp each frame when it is sent, as a live camera would (the server's latency is
+        /// then capture-to-pose at any --rate; the stamps no longer match the recording's).
+        #[arg(long, conflicts_with = "original_timestamps")]
+        stamp_on_send: bool,
     },
     /// Walk a simulated building and stream what the camera sees: a built-in scenario
     /// (`vsgraphs-sim list`) or a scenario JSON file. Every robot of the scenario streams at
@@ -176,6 +180,7 @@ async fn main() -> anyhow::Result<()> {
             stream,
             loops,
             original_timestamps,
+            stamp_on_send,
         } => {
             let dataset =
                 dataset::open(&dir).with_context(|| format!("opening {}", dir.display()))?;
@@ -211,6 +216,7 @@ async fn main() -> anyhow::Result<()> {
                 loops,
                 limit: stream.limit,
                 original_timestamps,
+                stamp_on_send,
             };
             let bar = ProgressBar::new(0);
             bar.set_style(

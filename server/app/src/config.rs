@@ -154,6 +154,11 @@ pub struct IngestConfig {
     /// ends and its entry goes (its maps stay), so robots that left do not hold places of
     /// `max_robots` or memory for ever.
     pub forget_after_s: f64,
+    /// Frames a second admitted per robot, in bursts of a second's worth; faster frames are
+    /// dropped on arrival (`dropped_over_rate`). 0: no limit.
+    pub max_rate_hz: f64,
+    /// Tracked poses kept per robot; beyond it older poses are thinned ([`crate::history`]).
+    pub trajectory_poses: usize,
     /// With mutual TLS (`[zenoh.tls] mutual`): the robots allowed, each by the common name of
     /// its certificate and only under that id. Empty: any robot (with a certificate of the site,
     /// under mutual TLS) under any id.
@@ -168,6 +173,8 @@ impl Default for IngestConfig {
             max_robots: 64,
             max_frame_bytes: vsgraphs_pipeline::config::DEFAULT_MAX_FRAME_BYTES,
             forget_after_s: 600.0,
+            max_rate_hz: 60.0,
+            trajectory_poses: crate::robots::DEFAULT_TRAJECTORY_POSES,
             allowed_robots: Vec::new(),
         }
     }
@@ -237,6 +244,21 @@ impl Config {
             if let Err(e) = vsgraphs_proto::keys::validate_robot_id(id) {
                 return invalid("ingest.allowed_robots", format!("{id:?}: {e}"));
             }
+        }
+        if !(self.ingest.max_rate_hz.is_finite() && self.ingest.max_rate_hz >= 0.0) {
+            return invalid(
+                "ingest.max_rate_hz",
+                format!(
+                    "must be a number of frames a second (0: no limit), not {}",
+                    self.ingest.max_rate_hz
+                ),
+            );
+        }
+        if self.ingest.trajectory_poses < crate::history::MIN_CAPACITY {
+            return invalid(
+                "ingest.trajectory_poses",
+                format!("must be at least {}", crate::history::MIN_CAPACITY),
+            );
         }
         if self.ingest.max_robots == 0 {
             return invalid("ingest.max_robots", "must be at least 1".into());

@@ -9,6 +9,7 @@ pub mod api;
 pub mod certificates;
 pub mod config;
 pub mod detect;
+pub mod history;
 pub mod ingest;
 pub mod queue;
 pub mod robots;
@@ -86,11 +87,15 @@ impl Server {
             maps.clone(),
         )
         .context("setting up marker detection")?;
-        let registry = Arc::new(Registry::new(
-            config.ingest.max_robots,
-            config.ingest.queue_capacity,
-            config.ingest.drop_policy == DropPolicy::DropOldest,
-        ));
+        let registry = Arc::new(
+            Registry::new(
+                config.ingest.max_robots,
+                config.ingest.queue_capacity,
+                config.ingest.drop_policy == DropPolicy::DropOldest,
+            )
+            .with_trajectory_poses(config.ingest.trajectory_poses)
+            .with_max_rate_hz(config.ingest.max_rate_hz),
+        );
         let mut zenoh_config = config.zenoh.to_config()?;
         // zenoh gathers a message's fragments until it is whole, by default up to a gigabyte
         // per link. Twice the frame limit: a frame a little too large still arrives and is
@@ -114,9 +119,7 @@ impl Server {
             zenoh_config,
         })
     }
-}
 
-impl Server {
     /// Checks the configuration, opens zenoh, starts ingest and the HTTP server.
     pub async fn start(config: Config) -> anyhow::Result<Self> {
         let Prepared {

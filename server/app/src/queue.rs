@@ -83,6 +83,12 @@ impl FrameQueue {
         outcome
     }
 
+    /// Counts a frame refused before it reached the queue, charged to the next frame queued
+    /// (as a drop-newest refusal is).
+    pub fn refuse(&self) {
+        self.lock().dropped_tail += 1;
+    }
+
     /// The next frame, waiting up to `timeout`; None on timeout or when closed and empty.
     pub fn pop(&self, timeout: Duration) -> Option<Arrival> {
         let inner = self.lock();

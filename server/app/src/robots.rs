@@ -3,6 +3,7 @@
 //! Written by the zenoh callbacks (arrivals, presence) and the robot's worker thread (outcomes);
 //! read by the API. Locks are held for a few field updates only, never across I/O or `.await`.
 
+use crate::history::History;
 use crate::queue::FrameQueue;
 use std::collections::{BTreeMap, BTreeSet, HashMap, VecDeque};
 use std::sync::atomic::{AtomicU64, Ordering};
@@ -13,7 +14,13 @@ use vsgraphs_proto::api::{
     self, FrameCounters, FrameDetections, MapView, Presence, RobotStatus, SpaceRef, Timing,
     TrackingEvent, TrackingStatus, TrajectoryPose,
 };
-use vsgraphs_slam::Anchor;
+
+/// Tracked poses kept per robot unless configured: 20 minutes at 30 Hz at full rate, 4.9 MB.
+pub const DEFAULT_TRAJECTORY_POSES: usize = 36_000;
+
+/// How far a robot's stamps may run ahead of the server's clock before it is warned: clocks
+/// kept by NTP agree within milliseconds.
+const CLOCK_TOLERANCE_MS: f64 = 1000.0;
 
 /// Window over which rate and latency are reported.
 const TIMING_WINDOW: Duration = Duration::from_secs(5);
@@ -31,11 +38,12 @@ pub struct RobotEntry {
     pub queue: FrameQueue,
     received: AtomicU64,
     dropped: AtomicU64,
+    dropped_over_rate: AtomicU64,
+    rate: Mutex<RateLimit>,
     state: Mutex<RobotState>,
     latest: Mutex<Option<Arc<FrameDetections>>>,
 }
 
-#[derive(Default)]
 struct RobotState {
     presence: Option<Presence>,
     last_seen_ns: Option<u64>,
@@ -46,27 +54,52 @@ struct RobotState {
     last_rejection: Option<api::Rejection>,
     /// Frames each marker id was detected in.
     markers_detected: BTreeMap<i32, u64>,
+    /// Whether the robot was told its clock runs ahead of the server's.
+    clock_warned: bool,
     /// Timing of recent frames.
     recent: VecDeque<Recent>,
     /// Tracking as of the latest frame (its timing fields are filled in by `status`).
     tracking: Option<TrackingStatus>,
     /// (when, features ms, tracking ms, mapping ms, local BA ms) of recently tracked frames.
     tracking_recent: VecDeque<(Instant, f64, f64, f64, f64)>,
-    /// Every tracked pose as tracking gave it, with its anchor keyframe (136 bytes each: an
-    /// hour at 30 Hz is under 15 MB).
-    trajectory: Vec<(TrajectoryPose, Option<Anchor>)>,
+    /// Tracked poses as tracking gave them, with their anchor keyframes (136 bytes each),
+    /// thinned beyond `[ingest] trajectory_poses`.
+    trajectory: History,
     /// Each map of the robot's Atlas by index, where its writer publishes its snapshots.
     maps: BTreeMap<u32, Snapshots>,
 }
 
+impl RobotState {
+    fn new(trajectory_poses: usize) -> Self {
+        Self {
+            presence: None,
+            last_seen_ns: None,
+            session_id: None,
+            processed: 0,
+            rejected_by_reason: BTreeMap::new(),
+            lost: 0,
+            last_rejection: None,
+            markers_detected: BTreeMap::new(),
+            clock_warned: false,
+            recent: VecDeque::new(),
+            tracking: None,
+            tracking_recent: VecDeque::new(),
+            trajectory: History::new(trajectory_poses),
+            maps: BTreeMap::new(),
+        }
+    }
+}
+
 impl RobotEntry {
-    fn new(robot_id: String, queue: FrameQueue) -> Self {
+    fn new(robot_id: String, queue: FrameQueue, trajectory_poses: usize, max_rate_hz: f64) -> Self {
         Self {
             robot_id,
             queue,
             received: AtomicU64::new(0),
             dropped: AtomicU64::new(0),
-            state: Mutex::new(RobotState::default()),
+            dropped_over_rate: AtomicU64::new(0),
+            rate: Mutex::new(RateLimit::new(max_rate_hz)),
+            state: Mutex::new(RobotState::new(trajectory_poses)),
             latest: Mutex::new(None),
         }
     }
@@ -86,6 +119,23 @@ impl RobotEntry {
 
     pub fn record_dropped(&self) {
         self.dropped.fetch_add(1, Ordering::Relaxed);
+    }
+
+    /// Whether a frame arriving `at` is within the robot's rate; one that is not is counted as
+    /// dropped (and charged to its queue's next frame, so that it is not taken for lost).
+    pub fn admit(&self, at: Instant) -> bool {
+        if self
+            .rate
+            .lock()
+            .unwrap_or_else(|p| p.into_inner())
+            .admit(at)
+        {
+            return true;
+        }
+        self.queue.refuse();
+        self.dropped.fetch_add(1, Ordering::Relaxed);
+        self.dropped_over_rate.fetch_add(1, Ordering::Relaxed);
+        false
     }
 
     pub fn record_lost(&self, frames: u64) {
@@ -114,6 +164,15 @@ impl RobotEntry {
         {
             let mut state = self.state();
             state.processed += 1;
+            if latency_ms < -CLOCK_TOLERANCE_MS && !state.clock_warned {
+                state.clock_warned = true;
+                tracing::warn!(
+                    robot = %self.robot_id,
+                    ahead_s = -latency_ms / 1e3,
+                    "the robot's stamps run ahead of the server's clock: its latency figures \
+                     are short by as much; synchronise the clocks (NTP, PTP)"
+                );
+            }
             for marker in &detections.markers {
                 *state.markers_detected.entry(marker.id).or_default() += 1;
             }
@@ -170,7 +229,7 @@ impl RobotEntry {
         status.markers = tracking.markers as u64;
         // Maps of the robot merged into others: its poses in them move with them.
         for followed in tracking.result.iter().flat_map(|r| &r.followed) {
-            for (pose, anchor) in state.trajectory.iter_mut() {
+            for (pose, anchor) in state.trajectory.poses_mut().iter_mut() {
                 if pose.map != followed.index as u32 {
                     continue;
                 }
@@ -233,14 +292,22 @@ impl RobotEntry {
                         let pose = vsgraphs_pipeline::model::api_pose(&pose);
                         status.world_from_camera = Some(pose);
                         status.pose_timestamp_ns = Some(timestamp_ns);
-                        state.trajectory.push((
+                        let thinned = state.trajectory.thinned();
+                        state.trajectory.push(
                             TrajectoryPose {
                                 timestamp_ns,
                                 map: result.map as u32,
                                 world_from_camera: pose,
                             },
                             result.anchor,
-                        ));
+                        );
+                        if thinned == 0 && state.trajectory.thinned() > 0 {
+                            tracing::info!(
+                                robot = %self.robot_id,
+                                poses = state.trajectory.poses().len(),
+                                "trajectory at [ingest] trajectory_poses: older poses are thinned"
+                            );
+                        }
                     }
                     None => status.frames_untracked += 1,
                 }
@@ -264,7 +331,7 @@ impl RobotEntry {
             let state = self.state();
             let maps: BTreeMap<u32, Arc<MapView>> =
                 state.maps.iter().map(|(&n, s)| (n, s.latest())).collect();
-            (state.trajectory.clone(), maps)
+            (state.trajectory.poses().to_vec(), maps)
         };
         trajectory
             .iter()
@@ -340,6 +407,7 @@ impl RobotEntry {
                 received: self.received.load(Ordering::Relaxed),
                 processed: state.processed,
                 dropped: self.dropped.load(Ordering::Relaxed),
+                dropped_over_rate: self.dropped_over_rate.load(Ordering::Relaxed),
                 rejected,
                 rejected_by_reason: state.rejected_by_reason.clone(),
                 lost: state.lost,
@@ -353,6 +421,12 @@ impl RobotEntry {
                 processing_ms_mean: mean(|r| r.processing_ms),
                 decode_ms_mean: mean(|r| r.decode_ms),
                 detection_ms_mean: mean(|r| r.detection_ms),
+                clock_ahead_ms: recent
+                    .iter()
+                    .map(|r| r.latency_ms)
+                    .reduce(f64::min)
+                    .filter(|&least| least < 0.0)
+                    .map(|least| -least),
             },
             last_rejection: state.last_rejection.clone(),
             markers_detected: state.markers_detected.clone(),
@@ -396,6 +470,42 @@ pub fn space_at(published: &Published, position: [f64; 3]) -> Option<SpaceRef> {
     })
 }
 
+/// A token bucket: `hz` frames a second, a second's worth at once.
+#[derive(Debug)]
+struct RateLimit {
+    hz: f64,
+    tokens: f64,
+    last: Option<Instant>,
+}
+
+impl RateLimit {
+    fn new(hz: f64) -> Self {
+        let burst = hz.max(1.0);
+        Self {
+            hz,
+            tokens: burst,
+            last: None,
+        }
+    }
+
+    fn admit(&mut self, at: Instant) -> bool {
+        if self.hz <= 0.0 {
+            return true;
+        }
+        if let Some(last) = self.last {
+            let refill = at.saturating_duration_since(last).as_secs_f64() * self.hz;
+            self.tokens = (self.tokens + refill).min(self.hz.max(1.0));
+        }
+        self.last = Some(at);
+        if self.tokens >= 1.0 {
+            self.tokens -= 1.0;
+            true
+        } else {
+            false
+        }
+    }
+}
+
 /// How long a processed frame took, as a whole and by stage.
 #[derive(Debug, Clone, Copy, Default)]
 pub struct ProcessingTimes {
@@ -422,6 +532,8 @@ pub struct Registry {
     max_robots: usize,
     queue_capacity: usize,
     drop_oldest: bool,
+    trajectory_poses: usize,
+    max_rate_hz: f64,
     /// Frames on keys that named no usable robot id, or beyond `max_robots`.
     pub frames_on_bad_keys: AtomicU64,
     pub started: Instant,
@@ -440,9 +552,23 @@ impl Registry {
             max_robots,
             queue_capacity,
             drop_oldest,
+            trajectory_poses: DEFAULT_TRAJECTORY_POSES,
+            max_rate_hz: 0.0,
             frames_on_bad_keys: AtomicU64::new(0),
             started: Instant::now(),
         }
+    }
+
+    /// Admits at most `hz` frames a second per robot, in bursts of a second's worth (0: any).
+    pub fn with_max_rate_hz(mut self, hz: f64) -> Self {
+        self.max_rate_hz = hz;
+        self
+    }
+
+    /// Keeps at most `poses` tracked poses per robot ([`History`]).
+    pub fn with_trajectory_poses(mut self, poses: usize) -> Self {
+        self.trajectory_poses = poses;
+        self
     }
 
     pub fn get(&self, robot_id: &str) -> Option<Arc<RobotEntry>> {
@@ -468,6 +594,8 @@ impl Registry {
         let entry = Arc::new(RobotEntry::new(
             robot_id.to_owned(),
             FrameQueue::new(self.queue_capacity, self.drop_oldest),
+            self.trajectory_poses,
+            self.max_rate_hz,
         ));
         robots.insert(robot_id.to_owned(), entry.clone());
         Ok((entry, true))
@@ -641,5 +769,51 @@ mod tests {
         assert_eq!(status.timing.processing_ms_mean, Some(4.0));
         assert_eq!(robot.latest_detections().unwrap().sequence, 5);
         assert_eq!(status.presence, Presence::Unknown);
+    }
+
+    #[test]
+    fn frames_beyond_the_rate_are_dropped_and_not_taken_for_lost() {
+        let registry = Registry::new(2, 4, true).with_max_rate_hz(10.0);
+        let (robot, _) = registry.get_or_insert("a").unwrap();
+        let start = Instant::now();
+        // A second's worth at once, then one a tenth of a second.
+        assert_eq!((0..30).filter(|_| robot.admit(start)).count(), 10);
+        assert!(robot.admit(start + Duration::from_millis(100)));
+        assert!(!robot.admit(start + Duration::from_millis(150)));
+        assert!(robot.admit(start + Duration::from_millis(200)));
+        let frames = robot.status().frames;
+        assert_eq!((frames.dropped, frames.dropped_over_rate), (21, 21));
+        // The worker learns of them with the next frame, so their numbers are not lost ones.
+        robot.queue.push(crate::queue::Arrival {
+            bytes: vec![],
+            received_ns: 0,
+            dropped_before: 0,
+        });
+        let next = robot.queue.pop(Duration::ZERO).unwrap();
+        assert_eq!(next.dropped_before, 21);
+        // No limit: everything passes.
+        let open = Registry::new(2, 4, true);
+        let (robot, _) = open.get_or_insert("b").unwrap();
+        assert!((0..1000).all(|_| robot.admit(start)));
+    }
+
+    #[test]
+    fn stamps_from_the_future_show_how_far_the_clock_is_ahead() {
+        let registry = Registry::new(2, 4, true);
+        let (robot, _) = registry.get_or_insert("a").unwrap();
+        let frame = |timestamp_ns| FrameDetections {
+            robot_id: "a".into(),
+            session_id: "s".into(),
+            sequence: 1,
+            timestamp_ns,
+            image_width: 4,
+            image_height: 3,
+            markers: vec![],
+        };
+        robot.record_processed(frame(now_ns() - 1_000_000), ProcessingTimes::default());
+        assert_eq!(robot.status().timing.clock_ahead_ms, None);
+        robot.record_processed(frame(now_ns() + 5_000_000_000), ProcessingTimes::default());
+        let ahead = robot.status().timing.clock_ahead_ms.unwrap();
+        assert!((4900.0..=5000.0).contains(&ahead), "{ahead}");
     }
 }

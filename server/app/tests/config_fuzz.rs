@@ -184,7 +184,22 @@ fn load_and_prepare(
         Ok(mut config) => {
             config.store.path = dir.join("maps.redb");
             config.semantics.dictionary_file = Default::default();
-            if let Ok(prepared) = runtime.block_on(Server::prepare(&config)) {
+            let prepared = runtime.block_on(Server::prepare(&config));
+            // A valid configuration starts, unless a file it names cannot be read (checked when
+            // the server reads it, which says which file and why).
+            let tls = &config.zenoh.tls;
+            let names_files = [
+                &config.markers.dictionary_file,
+                &tls.root_ca_certificate,
+                &tls.certificate,
+                &tls.private_key,
+            ]
+            .iter()
+            .any(|path| !path.as_os_str().is_empty());
+            if let Err(e) = &prepared {
+                prop_assert!(names_files, "validated, then refused at start: {e:#}");
+            }
+            if let Ok(prepared) = prepared {
                 let mut processor = FrameProcessor::new(
                     &config.markers,
                     &config.tracking,

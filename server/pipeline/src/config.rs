@@ -257,6 +257,20 @@ impl PipelineConfig {
                 format!("{} is not a positive length in metres", self.markers.side_m),
             );
         }
+        if self.markers.dictionary_file.as_os_str().is_empty()
+            && !vsgraphs_vision::dictionary::MarkerDictionary::is_predefined(
+                &self.markers.dictionary,
+            )
+        {
+            return invalid(
+                "markers.dictionary",
+                format!(
+                    "{:?} is not one of OpenCV's predefined dictionaries ({})",
+                    self.markers.dictionary,
+                    vsgraphs_vision::dictionary::PREDEFINED.join(", ")
+                ),
+            );
+        }
         if !(self.markers.depth_agreement.is_finite() && self.markers.depth_agreement > 0.0) {
             return invalid(
                 "markers.depth_agreement",

@@ -1258,7 +1258,7 @@ impl Writer {
 
     /// Hands the rows changed since the last save to the store (if any), with the maps merged
     /// into this one since, whose rows go in the same commit.
-    fn save(&mut self, retire: Vec<MapId>) {
+    fn save(&mut self, mut retire: Vec<MapId>) {
         // Cleared with no store too: the writer's wait for the next save ends on it.
         self.unsaved = false;
         self.saved_at = Instant::now();
@@ -1266,8 +1266,9 @@ impl Writer {
             return;
         };
         let started = Instant::now();
-        if saver.take_rewrite(self.map.id()) {
+        if let Some(again) = saver.take_rewrite(self.map.id()) {
             self.ledger = Ledger::new();
+            retire.extend(again);
         }
         let changes = {
             let map = self.map.read();

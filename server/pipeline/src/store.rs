@@ -16,7 +16,7 @@
 //! loaded whole or not at all.
 
 use redb::{Database, ReadableDatabase, ReadableTable, TableDefinition};
-use std::collections::{BTreeMap, BTreeSet, VecDeque};
+use std::collections::{BTreeMap, VecDeque};
 use std::path::{Path, PathBuf};
 use std::sync::{mpsc, Arc, Mutex};
 use std::thread::JoinHandle;
@@ -82,6 +82,11 @@ pub struct Save {
     pub retire: Vec<MapId>,
 }
 
+/// The most memory redb keeps of the file. Its default (a gigabyte) fills as the file grows,
+/// so a server that maps for days would grow towards it; the store reads a map back whole only
+/// at start and otherwise writes, which a small cache serves as well.
+pub const CACHE_BYTES: usize = 64 << 20;
+
 /// The store's file.
 pub struct Store {
     db: Database,
@@ -98,7 +103,10 @@ impl Store {
         if let Some(dir) = path.parent().filter(|d| !d.as_os_str().is_empty()) {
             std::fs::create_dir_all(dir).map_err(|e| fail(format!("creating its folder: {e}")))?;
         }
-        let db = Database::create(path).map_err(|e| fail(e.to_string()))?;
+        let db = redb::Builder::new()
+            .set_cache_size(CACHE_BYTES)
+            .create(path)
+            .map_err(|e| fail(e.to_string()))?;
         let store = Self {
             db,
             path: path.to_owned(),
@@ -304,8 +312,9 @@ fn keep(times: &mut VecDeque<f64>, ms: f64) {
 struct SaverState {
     /// Keyframes of each map as of its last commit.
     stored: Mutex<BTreeMap<MapId, u32>>,
-    /// Maps whose last rows were not written: their writers hand over every row again.
-    rewrite: Mutex<BTreeSet<MapId>>,
+    /// Maps whose last rows were not written: their writers hand over every row again, with
+    /// the maps merged into them whose removal was in the commit that failed.
+    rewrite: Mutex<BTreeMap<MapId, Vec<MapId>>>,
     stats: Mutex<StoreStats>,
 }
 
@@ -359,8 +368,9 @@ impl Saver {
         }
     }
 
-    /// Whether `map`'s writer must hand over all its rows again (a write of them failed).
-    pub fn take_rewrite(&self, map: MapId) -> bool {
+    /// Whether `map`'s writer must hand over all its rows again (a write of them failed), and
+    /// if so the maps merged into it to remove in the same commit (their removal failed too).
+    pub fn take_rewrite(&self, map: MapId) -> Option<Vec<MapId>> {
         lock(&self.state.rewrite).remove(&map)
     }
 
@@ -418,10 +428,48 @@ fn save(store: &Store, saves: &mpsc::Receiver<Save>, state: &SaverState) {
                 tracing::debug!(saves = batch.len(), bytes, ms, "store committed");
             }
             Err(error) => {
-                lock(&state.stats).failures += 1;
                 tracing::error!(%error, "the map store could not be written; the maps will be written whole again");
-                lock(&state.rewrite).extend(batch.iter().map(|s| s.map));
+                state.failed(&batch);
             }
         }
+    }
+}
+
+impl SaverState {
+    /// A commit of `batch` failed: each map in it is to be written whole again, together with
+    /// the removal of the maps merged into it (so that a restart never finds a merged map
+    /// without what was merged into it, nor both).
+    fn failed(&self, batch: &[Save]) {
+        lock(&self.stats).failures += 1;
+        let mut rewrite = lock(&self.rewrite);
+        for save in batch {
+            rewrite
+                .entry(save.map)
+                .or_default()
+                .extend(save.retire.iter().copied());
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_failed_merge_commit_is_redone_whole_with_its_removal() {
+        let state = SaverState::default();
+        let save = |map, retire: Vec<MapId>| Save {
+            map: MapId(map),
+            changes: Changes::default(),
+            retire,
+        };
+        // Map 1 took map 7 in; map 2 only added rows. The commit fails.
+        state.failed(&[save(1, vec![MapId(7)]), save(2, vec![])]);
+        assert_eq!(state.stats.lock().unwrap().failures, 1);
+        let take_rewrite = |map| state.rewrite.lock().unwrap().remove(&MapId(map));
+        // Map 1's writer writes it whole and removes map 7 in the same commit; map 2 whole.
+        assert_eq!(take_rewrite(1), Some(vec![MapId(7)]));
+        assert_eq!(take_rewrite(2), Some(vec![]));
+        assert_eq!(take_rewrite(3), None);
     }
 }

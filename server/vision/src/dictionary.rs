@@ -86,19 +86,29 @@ impl std::fmt::Debug for MarkerDictionary {
     }
 }
 
+/// The index in [`PREDEFINED`] of the dictionary `name` names.
+fn predefined_index(name: &str) -> Option<usize> {
+    let wanted = name.trim().to_ascii_uppercase();
+    let wanted = if wanted.starts_with("DICT_") {
+        wanted
+    } else {
+        format!("DICT_{wanted}")
+    };
+    PREDEFINED
+        .iter()
+        .position(|n| n.to_ascii_uppercase() == wanted)
+}
+
 impl MarkerDictionary {
+    /// Whether `name` names a predefined dictionary, as [`MarkerDictionary::predefined`] reads it.
+    pub fn is_predefined(name: &str) -> bool {
+        predefined_index(name).is_some()
+    }
+
     /// A predefined dictionary, e.g. "DICT_6X6_250" (case-insensitive; "DICT_" may be left out).
     pub fn predefined(name: &str) -> Result<Self, DictionaryError> {
-        let wanted = name.trim().to_ascii_uppercase();
-        let wanted = if wanted.starts_with("DICT_") {
-            wanted
-        } else {
-            format!("DICT_{wanted}")
-        };
-        let index = PREDEFINED
-            .iter()
-            .position(|n| n.to_ascii_uppercase() == wanted)
-            .ok_or_else(|| DictionaryError::UnknownName(name.to_owned()))?;
+        let index =
+            predefined_index(name).ok_or_else(|| DictionaryError::UnknownName(name.to_owned()))?;
         let source = Source::Predefined(index as i32);
         let inner = opencv::aruco::get_predefined_dictionary_i32(index as i32).map_err(CvError)?;
         Ok(Self {

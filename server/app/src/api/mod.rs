@@ -290,10 +290,15 @@ struct TrajectoryQuery {
     format: Option<String>,
     /// Only poses in this map of the robot's Atlas; TUM output defaults to the latest pose's map.
     map: Option<u32>,
+    /// Only poses stamped after this, ns: the last stamp of one page asks for the next.
+    after_ns: Option<u64>,
+    /// At most this many poses, the oldest first.
+    limit: Option<usize>,
 }
 
-/// Every tracked pose of the robot, oldest first, each moved with its reference keyframe as the
-/// map was refined since; as JSON or as a TUM trajectory file.
+/// The robot's tracked poses, oldest first, each moved with its reference keyframe as the map
+/// was refined since; as JSON or as a TUM trajectory file. Beyond `[ingest] trajectory_poses`
+/// older poses are thinned; `after_ns` and `limit` read it in pages.
 #[utoipa::path(
     get,
     path = "/api/v1/robots/{robot_id}/trajectory",
@@ -329,6 +334,12 @@ async fn get_trajectory(
         .or_else(|| tum.then(|| poses.last().map(|p| p.map)).flatten());
     if let Some(map) = map {
         poses.retain(|p| p.map == map);
+    }
+    if let Some(after) = query.after_ns {
+        poses.retain(|p| p.timestamp_ns > after);
+    }
+    if let Some(limit) = query.limit {
+        poses.truncate(limit);
     }
     if tum {
         return Ok((

@@ -127,6 +127,9 @@ impl Ingest {
                     return;
                 };
                 robot.record_arrival();
+                if !robot.admit(std::time::Instant::now()) {
+                    return;
+                }
                 let arrival = Arrival {
                     bytes: sample.payload().to_bytes().into_owned(),
                     received_ns: now_ns(),
