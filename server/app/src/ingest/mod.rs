@@ -233,12 +233,15 @@ impl Continuity {
 fn run_worker(robot: Arc<RobotEntry>, config: &Config, maps: MapService) {
     let span = tracing::info_span!("robot", robot_id = robot.robot_id);
     let _entered = span.enter();
-    let mut processor = match FrameProcessor::new(
-        &config.markers,
-        &config.tracking,
-        config.ingest.max_frame_bytes,
-        maps,
-    ) {
+    let new_processor = || {
+        FrameProcessor::new(
+            &config.markers,
+            &config.tracking,
+            config.ingest.max_frame_bytes,
+            maps.clone(),
+        )
+    };
+    let mut processor = match new_processor() {
         Ok(processor) => processor,
         Err(e) => {
             // The configuration was checked at start-up, so this is not expected; say so loudly.
@@ -329,7 +332,17 @@ fn run_worker(robot: Arc<RobotEntry>, config: &Config, maps: MapService) {
                     .map(|s| s.to_string())
                     .or_else(|| panic.downcast_ref::<String>().cloned())
                     .unwrap_or_else(|| "unknown panic".into());
-                tracing::error!(message, "frame processing panicked; frame rejected");
+                tracing::error!(
+                    message,
+                    "frame processing panicked; frame rejected, and the robot's tracker starts \
+                     afresh (it relocalises in the maps)"
+                );
+                // The panic may have left the tracker half-updated; a new one knows only the
+                // maps, which their writers keep.
+                match new_processor() {
+                    Ok(fresh) => processor = fresh,
+                    Err(e) => tracing::error!(error = %e, "cannot set up frame processing again"),
+                }
                 continuity.unsequenced_since += 1;
                 robot.record_rejection(api::Rejection {
                     reason: "internal".into(),
