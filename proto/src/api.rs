@@ -401,7 +401,7 @@ pub struct DictionaryDoor {
 }
 
 /// A map of the server in `GET /api/v1/maps`: its size, semantic layer and robots.
-#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+#[derive(Debug, Clone, Default, Serialize, Deserialize, PartialEq)]
 #[cfg_attr(feature = "openapi", derive(ToSchema))]
 pub struct MapSummary {
     pub id: u32,
@@ -598,4 +598,76 @@ pub struct ApiError {
     /// Machine-readable code, e.g. "robot_not_found".
     pub error: String,
     pub message: String,
+}
+
+/// `event: robots` of `GET /api/v1/events`: the robots whose status changed since the last
+/// such event (all of them in the first), and the robots the server forgot.
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+#[cfg_attr(feature = "openapi", derive(ToSchema))]
+pub struct RobotsChanged {
+    pub robots: Vec<RobotStatus>,
+    #[serde(default)]
+    pub gone: Vec<String>,
+}
+
+/// `event: map` of `GET /api/v1/events`: what changed in one map since the last such event
+/// for it. Lists are of what is new or moved; the semantic layer (walls, doorways, spaces),
+/// small and rebuilt as a whole, comes whole when any of it changed.
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+#[cfg_attr(feature = "openapi", derive(ToSchema))]
+pub struct MapChanged {
+    pub summary: MapSummary,
+    /// The first event for this map: the lists hold everything.
+    pub full: bool,
+    /// Keyframes new, moved more than [`MapChanged::MOVED_M`] or newly culled.
+    #[serde(default)]
+    pub keyframes: Vec<MapKeyframe>,
+    /// Markers new or moved more than [`MapChanged::MOVED_M`], and the ones gone.
+    #[serde(default)]
+    pub markers: Vec<MapMarker>,
+    #[serde(default)]
+    pub markers_gone: Vec<i32>,
+    /// Loops closed since.
+    #[serde(default)]
+    pub loops: Vec<MapLoop>,
+    #[serde(default)]
+    pub walls: Option<Vec<MapWall>>,
+    #[serde(default)]
+    pub doorways: Option<Vec<MapDoorway>>,
+    #[serde(default)]
+    pub spaces: Option<Vec<MapSpace>>,
+    #[serde(default)]
+    pub missing_spaces: Option<Vec<MissingSpace>>,
+    /// The map's points, evenly decimated, when they changed (at most every few seconds).
+    #[serde(default)]
+    pub points: Option<Vec<[f32; 3]>>,
+}
+
+impl MapChanged {
+    /// A keyframe or marker that moved less than this (metres) is not sent again: a page
+    /// draws a building metres across, where a centimetre is under a pixel.
+    pub const MOVED_M: f64 = 0.01;
+}
+
+/// `event: path` of `GET /api/v1/events`: where a robot went in a map, as positions at
+/// least [`PathChanged::SPACING_M`] apart. `full`: the whole path, replacing the one before
+/// (the map was corrected: a loop closed or a merge); else the positions after it.
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+#[cfg_attr(feature = "openapi", derive(ToSchema))]
+pub struct PathChanged {
+    pub robot: String,
+    pub map_id: u32,
+    pub full: bool,
+    pub positions: Vec<[f32; 3]>,
+}
+
+impl PathChanged {
+    pub const SPACING_M: f64 = 0.05;
+}
+
+/// `event: map_gone` of `GET /api/v1/events`: a map merged into another, or removed.
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+#[cfg_attr(feature = "openapi", derive(ToSchema))]
+pub struct MapGone {
+    pub id: u32,
 }

@@ -1,6 +1,8 @@
 //! Helpers of the end-to-end tests: a real server on loopback zenoh, real SDK robots, rendered
 //! marker frames, and the shared real data.
 
+pub mod browser;
+
 use std::future::Future;
 use std::net::TcpListener;
 use std::path::PathBuf;
@@ -132,4 +134,50 @@ pub fn encode_rendered(camera: &PinholeCamera, frame: &RenderedFrame) -> (Colour
     )
     .unwrap();
     (colour, depth)
+}
+
+/// A simulated building to walk: its scenario, the building, a renderer of it, and its semantic
+/// dictionary (v1) in a file a server reads.
+pub struct SimulatedSite {
+    pub scenario: vsgraphs_sim::scenarios::Scenario,
+    pub building: vsgraphs_sim::Building,
+    pub renderer: std::sync::Arc<vsgraphs_sim::Renderer>,
+    pub dictionary: tempfile::NamedTempFile,
+}
+
+impl SimulatedSite {
+    pub fn new(scenario: vsgraphs_sim::scenarios::Scenario) -> Self {
+        let building = vsgraphs_sim::Building::from_plan(&scenario.plan).unwrap();
+        let dictionary = tempfile::NamedTempFile::new().unwrap();
+        std::fs::write(dictionary.path(), building.dictionary_v1().to_string()).unwrap();
+        let renderer = std::sync::Arc::new(vsgraphs_sim::Renderer::new(
+            &scenario.plan,
+            &building,
+            scenario.render.clone(),
+            1,
+        ));
+        Self {
+            scenario,
+            building,
+            renderer,
+            dictionary,
+        }
+    }
+
+    /// A scenario built into `vsgraphs-sim` (`seq01`, `seq06`, ...).
+    pub fn builtin(name: &str) -> Self {
+        Self::new(vsgraphs_sim::scenarios::Scenario::builtin(name).unwrap())
+    }
+
+    /// A test server that reads the building's dictionary.
+    pub async fn server(&self) -> TestServer {
+        let path = self.dictionary.path().to_path_buf();
+        TestServer::start_with(|c| c.semantics.dictionary_file = path).await
+    }
+
+    /// The scenario's walks.
+    pub fn walks(&self) -> Vec<std::sync::Arc<vsgraphs_sim::walk::Walk>> {
+        let walks = self.scenario.walks().unwrap();
+        walks.into_iter().map(std::sync::Arc::new).collect()
+    }
 }

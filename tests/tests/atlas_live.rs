@@ -17,7 +17,6 @@ use vsgraphs_sdk::simulated::{self, SimOptions, SimSummary};
 use vsgraphs_sdk::{Delivery, Robot, RobotConfig};
 use vsgraphs_sim::scenarios::Scenario;
 use vsgraphs_sim::walk::Walk;
-use vsgraphs_sim::{Building, Renderer};
 use vsgraphs_tests::*;
 
 /// Each robot's stamps are moved this far from the other's, seconds, so that one trajectory
@@ -27,20 +26,10 @@ const ROBOT_STAMP_OFFSET_S: f64 = 1e5;
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn two_robots_streaming_at_once_end_in_one_merged_map() {
     let path = concat!(env!("CARGO_MANIFEST_DIR"), "/data/two_wings.json");
-    let scenario = Scenario::load(path).unwrap();
-    let building = Building::from_plan(&scenario.plan).unwrap();
-    let dictionary = tempfile::NamedTempFile::new().unwrap();
-    std::fs::write(dictionary.path(), building.dictionary_v1().to_string()).unwrap();
-    let test = TestServer::start_with(|c| {
-        c.semantics.dictionary_file = dictionary.path().to_path_buf();
-    })
-    .await;
-    let renderer = Arc::new(Renderer::new(
-        &scenario.plan,
-        &building,
-        scenario.render.clone(),
-        1,
-    ));
+    let site = SimulatedSite::new(Scenario::load(path).unwrap());
+    let test = site.server().await;
+    let (scenario, _building) = (&site.scenario, &site.building);
+    let renderer = site.renderer.clone();
     let walks: Vec<Arc<Walk>> = scenario
         .walks()
         .unwrap()

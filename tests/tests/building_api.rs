@@ -5,33 +5,20 @@
 //! a dictionary replaced through the API renames the rooms without restarting the robot.
 
 use std::collections::BTreeSet;
-use std::sync::Arc;
 use std::time::Duration;
 use vsgraphs_proto::api::{GraphLayer, SpaceKind};
 use vsgraphs_sdk::player::Rate;
 use vsgraphs_sdk::simulated::{self, SimOptions};
 use vsgraphs_sdk::{ClientError, Delivery, Robot, RobotConfig};
-use vsgraphs_sim::scenarios::Scenario;
-use vsgraphs_sim::{Building, Renderer};
 use vsgraphs_tests::*;
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn the_api_answers_rooms_doorways_route_and_where_the_robot_is_after_seq01() {
-    let scenario = Scenario::builtin("seq01").unwrap();
-    let building = Building::from_plan(&scenario.plan).unwrap();
-    let dictionary = tempfile::NamedTempFile::new().unwrap();
-    std::fs::write(dictionary.path(), building.dictionary_v1().to_string()).unwrap();
-    let test = TestServer::start_with(|c| {
-        c.semantics.dictionary_file = dictionary.path().to_path_buf();
-    })
-    .await;
-    let renderer = Arc::new(Renderer::new(
-        &scenario.plan,
-        &building,
-        scenario.render.clone(),
-        1,
-    ));
-    let walk = Arc::new(scenario.walks().unwrap().remove(0));
+    let site = SimulatedSite::builtin("seq01");
+    let test = site.server().await;
+    let (scenario, building) = (&site.scenario, &site.building);
+    let renderer = site.renderer.clone();
+    let walk = site.walks().remove(0);
     let frames = walk.times.len();
 
     let mut config = RobotConfig::connecting_to("sim-1", &test.zenoh_endpoint);

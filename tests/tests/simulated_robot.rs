@@ -16,26 +16,16 @@ use vsgraphs_tests::*;
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_simulated_robot_streams_seq06_and_the_server_reports_its_frames_and_markers() {
-    let scenario = Scenario::builtin("seq06").unwrap();
-    let building = Building::from_plan(&scenario.plan).unwrap();
-    let dictionary = tempfile::NamedTempFile::new().unwrap();
-    std::fs::write(dictionary.path(), building.dictionary_v1().to_string()).unwrap();
-    let test = TestServer::start_with(|c| {
-        c.semantics.dictionary_file = dictionary.path().to_path_buf();
-    })
-    .await;
-    let renderer = Arc::new(Renderer::new(
-        &scenario.plan,
-        &building,
-        scenario.render.clone(),
-        1,
-    ));
-    let walk = Arc::new(scenario.walks().unwrap().remove(0));
+    let site = SimulatedSite::builtin("seq06");
+    let test = site.server().await;
+    let building = &site.building;
+    let renderer = site.renderer.clone();
+    let walk = site.walks().remove(0);
     let frames = 240;
     // Markers squarely in view and near in the frames sent: the server must find each.
     let mut expected = BTreeSet::new();
     for pose in &walk.world_from_camera[..frames] {
-        expected.extend(renderer.visible_markers(&building, pose, 2.5, 45.0));
+        expected.extend(renderer.visible_markers(building, pose, 2.5, 45.0));
     }
     assert!(
         expected.len() >= 3,

@@ -23,7 +23,6 @@ use ingest::Ingest;
 use robots::Registry;
 use std::net::SocketAddr;
 use std::sync::Arc;
-use tokio::sync::oneshot;
 use tokio::task::JoinHandle;
 use vsgraphs_pipeline::MapService;
 
@@ -38,7 +37,8 @@ pub struct Server {
     /// Robots see the server by it ([`vsgraphs_proto::keys::SERVER_ALIVE`]).
     alive: zenoh::liveliness::LivelinessToken,
     http: JoinHandle<std::io::Result<()>>,
-    stop_http: oneshot::Sender<()>,
+    /// Set when the server stops: HTTP shuts down and pages' event streams end.
+    stop_http: tokio::sync::watch::Sender<bool>,
 }
 
 /// What a configuration makes before the server touches the network: its maps (the store
@@ -161,18 +161,19 @@ impl Server {
                  it can replace the dictionary and add maps ([http] admin_token)"
             );
         }
+        let (stop_http, mut stopped) = tokio::sync::watch::channel(false);
         let app = api::router(
             registry.clone(),
             maps.clone(),
             config.http.max_map_file_bytes,
             access,
+            stopped.clone(),
         )
         .merge(web::router());
-        let (stop_http, stopped) = oneshot::channel();
         let http = tokio::spawn(async move {
             axum::serve(listener, app)
-                .with_graceful_shutdown(async {
-                    let _ = stopped.await;
+                .with_graceful_shutdown(async move {
+                    let _ = stopped.wait_for(|stop| *stop).await;
                 })
                 .await
         });
@@ -220,7 +221,7 @@ impl Server {
             maps.stop();
         })
         .await?;
-        let _ = stop_http.send(());
+        let _ = stop_http.send(true);
         http.await??;
         Ok(())
     }

@@ -35,7 +35,7 @@ pub(super) async fn list(State(state): State<ApiState>) -> Json<Vec<MapSummary>>
     Json(summaries)
 }
 
-fn summary(state: &ApiState, id: MapId, view: &MapView) -> MapSummary {
+pub(super) fn summary(state: &ApiState, id: MapId, view: &MapView) -> MapSummary {
     let count = |kind| view.spaces.iter().filter(|s| s.kind == kind).count() as u64;
     MapSummary {
         id: id.0,

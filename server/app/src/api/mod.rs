@@ -6,6 +6,7 @@
 
 pub mod access;
 pub mod dictionary;
+pub mod events;
 pub mod extract;
 pub mod maps;
 
@@ -21,10 +22,11 @@ use utoipa::OpenApi;
 use vsgraphs_pipeline::MapService;
 use vsgraphs_proto::api::{
     ApiError, DictionaryDoor, DictionaryInfo, DictionarySpace, DistanceSource, FrameCounters,
-    FrameDetections, GraphEdge, GraphLayer, GraphNode, Health, MapDoorway, MapKeyframe, MapLoop,
-    MapMarker, MapMerge, MapSpace, MapSummary, MapView, MapWall, MarkerDetection, MarkerPose,
-    MissingSpace, Pose, Presence, Rejection, RobotStatus, RobotTrajectory, Route, SceneGraph,
-    SpaceKind, SpaceRef, Timing, TrackingEvent, TrackingState, TrackingStatus, TrajectoryPose,
+    FrameDetections, GraphEdge, GraphLayer, GraphNode, Health, MapChanged, MapDoorway, MapGone,
+    MapKeyframe, MapLoop, MapMarker, MapMerge, MapSpace, MapSummary, MapView, MapWall,
+    MarkerDetection, MarkerPose, MissingSpace, PathChanged, Pose, Presence, Rejection, RobotStatus,
+    RobotTrajectory, RobotsChanged, Route, SceneGraph, SpaceKind, SpaceRef, Timing, TrackingEvent,
+    TrackingState, TrackingStatus, TrajectoryPose,
 };
 
 /// What the handlers read: the robots and the maps.
@@ -32,6 +34,10 @@ use vsgraphs_proto::api::{
 pub struct ApiState {
     pub registry: Arc<Registry>,
     pub maps: MapService,
+    /// Places for pages following `/api/v1/events`.
+    pub pages: Arc<tokio::sync::Semaphore>,
+    /// Turns true when the server stops: event streams end, so HTTP can shut down.
+    pub stopping: tokio::sync::watch::Receiver<bool>,
 }
 
 impl FromRef<ApiState> for Arc<Registry> {
@@ -107,7 +113,8 @@ impl IntoResponse for Failure {
         maps::doorways,
         maps::walls,
         maps::route,
-        maps::graph
+        maps::graph,
+        events::stream
     ),
     components(schemas(
         Health,
@@ -146,6 +153,10 @@ impl IntoResponse for Failure {
         GraphLayer,
         SpaceKind,
         MissingSpace,
+        RobotsChanged,
+        MapChanged,
+        PathChanged,
+        MapGone,
         ApiError
     ))
 )]
@@ -165,6 +176,7 @@ pub fn router(
     maps: MapService,
     max_map_file_bytes: usize,
     access: access::Access,
+    stopping: tokio::sync::watch::Receiver<bool>,
 ) -> Router {
     Router::new()
         .route("/api/v1/health", get(health))
@@ -204,13 +216,19 @@ pub fn router(
         .route("/api/v1/maps/{map_id}/walls", get(maps::walls))
         .route("/api/v1/maps/{map_id}/route", get(maps::route))
         .route("/api/v1/maps/{map_id}/graph", get(maps::graph))
+        .route("/api/v1/events", get(events::stream))
         .route(
             "/api/v1/openapi.json",
             get(|| async { ([("content-type", "application/json")], openapi_json()) }),
         )
         .route("/api/{*rest}", get(unknown_endpoint))
         .layer(axum::middleware::from_fn_with_state(access, access::check))
-        .with_state(ApiState { registry, maps })
+        .with_state(ApiState {
+            registry,
+            maps,
+            pages: Arc::new(tokio::sync::Semaphore::new(events::MAX_PAGES)),
+            stopping,
+        })
 }
 
 async fn unknown_endpoint(Path(rest): Path<String>) -> Failure {
@@ -453,6 +471,19 @@ fn unknown_robot(robot_id: &str) -> Failure {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// The router of a server that does not stop during the test.
+    fn test_router(
+        registry: Arc<Registry>,
+        maps: MapService,
+        max_map_file_bytes: usize,
+        access: access::Access,
+    ) -> Router {
+        let (stop, stopping) = tokio::sync::watch::channel(false);
+        // The sender lives as long as the test: event streams never see the server stop.
+        std::mem::forget(stop);
+        router(registry, maps, max_map_file_bytes, access, stopping)
+    }
     use axum::body::Body;
     use axum::http::Request;
     use tower::ServiceExt;
@@ -473,7 +504,7 @@ mod tests {
     async fn unknown_things_are_json_404s() {
         let registry = Arc::new(Registry::new(4, 4, true));
         registry.get_or_insert("known").unwrap();
-        let app = router(registry, MapService::new(), 1 << 20, Default::default());
+        let app = test_router(registry, MapService::new(), 1 << 20, Default::default());
         let (status, body) = get_json(app.clone(), "/api/v1/robots/ghost").await;
         assert_eq!(
             (status, body["error"].as_str()),
@@ -542,7 +573,7 @@ mod tests {
     #[tokio::test]
     async fn tokens_guard_changes_and_reading() {
         let app = |access| {
-            router(
+            test_router(
                 Arc::new(Registry::new(4, 4, true)),
                 MapService::new(),
                 1 << 20,
@@ -639,7 +670,7 @@ mod tests {
     #[tokio::test]
     async fn the_dictionary_is_replaced_checked_and_removed_at_run_time() {
         let maps = MapService::new();
-        let app = router(
+        let app = test_router(
             Arc::new(Registry::new(4, 4, true)),
             maps.clone(),
             1 << 20,
@@ -693,7 +724,7 @@ mod tests {
     async fn openapi_lists_every_route() {
         let registry = Arc::new(Registry::new(4, 4, true));
         let (status, doc) = get_json(
-            router(registry, MapService::new(), 1 << 20, Default::default()),
+            test_router(registry, MapService::new(), 1 << 20, Default::default()),
             "/api/v1/openapi.json",
         )
         .await;
@@ -724,7 +755,7 @@ mod tests {
     #[tokio::test]
     async fn a_map_file_beyond_the_limit_or_not_a_map_is_refused() {
         let maps = MapService::new();
-        let app = router(
+        let app = test_router(
             Arc::new(Registry::new(4, 4, true)),
             maps.clone(),
             1000,
