@@ -14,6 +14,11 @@ const EVENTS_KEPT = 100;
 const token = new URLSearchParams(location.hash.slice(1)).get("token");
 const headers = token ? { Authorization: `Bearer ${token}` } : {};
 
+// Main-thread time spent on events and drawing, and when the page reached each step (ms since
+// navigation began), for benchmarks (`window.pageTiming`).
+const timing = { started: performance.now(), events: 0, eventMs: 0, renders: 0, renderMs: 0, renderMsMax: 0 };
+window.pageTiming = timing;
+
 const state = {
   robots: new Map(), // robot id -> RobotStatus
   history: new Map(), // robot id -> [{ rate, latency }]
@@ -67,6 +72,7 @@ const handlers = {
     const map = change.full || !state.maps.has(id) ? newMap(id) : state.maps.get(id);
     state.maps.set(id, map);
     map.summary = change.summary;
+    timing.firstMap = timing.firstMap || performance.now();
     for (const k of change.keyframes) map.keyframes.set(k.id, k);
     for (const m of change.markers) map.markers.set(m.id, m);
     for (const m of change.markers_gone) map.markers.delete(m);
@@ -75,7 +81,8 @@ const handlers = {
     if (change.spaces) map.spaces = change.spaces;
     if (change.missing_spaces) map.missing = change.missing_spaces;
     if (change.points) map.points = change.points;
-    for (const l of change.loops) log(`map ${id}: loop closed, keyframe ${l.newer} seen again at ${l.older} (${l.inliers} points)`);
+    // Loops of a first (whole) event closed before the page opened: not news.
+    if (!change.full) for (const l of change.loops) log(`map ${id}: loop closed, keyframe ${l.newer} seen again at ${l.older} (${l.inliers} points)`);
     if (!state.mapChosen && (state.mapId === null || biggest() === id)) state.mapId = id;
     schedule({ map: id, lists: Boolean(change.spaces || change.doorways), maps: true });
   },
@@ -87,7 +94,8 @@ const handlers = {
     schedule({ map: change.map_id });
   },
   merge(m) {
-    log(`maps merged: map ${m.source} into map ${m.target} (${m.markers.length} shared markers, ${m.point_inliers} points)`);
+    const how = m.place_keyframes ? "a place both saw" : `${m.markers.length} shared markers`;
+    log(`maps merged: map ${m.source} into map ${m.target} (${how}, ${m.point_inliers} points)`, new Date(m.at_ns / 1e6));
     if (state.mapId === m.source) state.mapId = m.target;
   },
   map_gone({ id }) {
@@ -113,9 +121,9 @@ function trackingEvents(before, r) {
   }
 }
 
-function log(text) {
+function log(text, at = new Date()) {
   const li = document.createElement("li");
-  li.textContent = `${new Date().toLocaleTimeString()} ${text}`;
+  li.textContent = `${at.toLocaleTimeString()} ${text}`;
   const list = $("events");
   list.prepend(li);
   while (list.children.length > EVENTS_KEPT) list.lastChild.remove();
@@ -128,6 +136,7 @@ async function follow() {
       const response = await fetch("/api/v1/events", { headers });
       if (!response.ok) throw new Error(`${response.status} ${(await response.json()).message}`);
       $("connection").textContent = "live";
+      timing.streamOpen = timing.streamOpen || performance.now();
       // A new stream starts from nothing: its first events bring everything.
       state.maps.clear();
       state.paths.clear();
@@ -171,12 +180,11 @@ function schedule(what) {
   pending = Object.assign(pending || {}, what);
   if (pending.scheduled) return;
   pending.scheduled = true;
-  requestAnimationFrame(render);
+  // The first draw at once (a page's first animation frame can wait for its loading to settle);
+  // then at most once per frame, and not at all while the page is hidden.
+  if (timing.renders === 0) setTimeout(render, 0);
+  else requestAnimationFrame(render);
 }
-
-// Main-thread time spent on events and drawing, for benchmarks (`window.pageTiming`).
-const timing = { events: 0, eventMs: 0, renders: 0, renderMs: 0, renderMsMax: 0 };
-window.pageTiming = timing;
 
 function render() {
   const start = performance.now();
@@ -199,7 +207,7 @@ function draw() {
     top.fit(map);
     top.draw(map, robots, (state.paths.get(state.mapId) || new Map()), state.selection);
   } else if (graph) {
-    graph.update(map, state.selection);
+    graph.update(map, state.selection, robots.inMap(state.mapId));
   }
   renderStats(map);
   renderDetails(map);
@@ -393,6 +401,10 @@ function renderDetails(map) {
       li.textContent = e.event;
       events.prepend(li);
     }
+    const detections = document.createElement("canvas");
+    detections.id = "detections";
+    const detectionsNote = document.createElement("p");
+    detectionsNote.className = "muted";
     body.replaceChildren(dl([
       ["presence", r.presence],
       ["tracking", t ? `${t.state} (${t.frames_tracked} tracked, ${t.frames_untracked} not)` : "off"],
@@ -402,9 +414,52 @@ function renderDetails(map) {
       ["latency", `${fmt(r.timing.latency_ms_mean)} ms mean, ${fmt(r.timing.latency_ms_max)} ms max`],
       ["frames", `${f.processed} processed, ${f.dropped} dropped, ${f.rejected} rejected, ${f.lost} lost`],
       ["last rejection", r.last_rejection ? `${r.last_rejection.reason}: ${r.last_rejection.message}` : "–"],
-    ]), events);
+    ]), events, detectionsNote, detections);
     body.dataset.kind = "robot";
+    showDetections(r.robot_id, detections, detectionsNote);
   }
+}
+
+// The markers in a robot's latest frame, drawn where they were seen. Asked for while the
+// robot's details are open, at most once a second: they change every frame, and no other view
+// needs them.
+let detectionsFor = null;
+async function showDetections(robotId, canvas, note) {
+  const now = performance.now();
+  if (detectionsFor && detectionsFor.robot === robotId && now - detectionsFor.at < 1000) {
+    paintDetections(detectionsFor.frame, canvas, note);
+    return;
+  }
+  detectionsFor = { robot: robotId, at: now, frame: detectionsFor && detectionsFor.robot === robotId ? detectionsFor.frame : null };
+  try {
+    const response = await fetch(`/api/v1/robots/${encodeURIComponent(robotId)}/detections`, { headers });
+    detectionsFor.frame = response.ok ? await response.json() : null;
+  } catch {
+    detectionsFor.frame = null;
+  }
+  // The details may have been redrawn meanwhile: paint the canvas that is shown now.
+  const shown = $("detections");
+  if (shown) paintDetections(detectionsFor.frame, shown, shown.previousSibling);
+}
+
+function paintDetections(frame, canvas, note) {
+  if (!frame) { note.textContent = "No frame processed yet."; canvas.hidden = true; return; }
+  canvas.width = frame.image_width;
+  canvas.height = frame.image_height;
+  const ctx = canvas.getContext("2d");
+  ctx.lineWidth = 3;
+  ctx.font = "28px system-ui, sans-serif";
+  for (const m of frame.markers) {
+    const c = m.corners_px;
+    ctx.strokeStyle = "#4fd18b";
+    ctx.beginPath();
+    c.forEach(([x, y], i) => (i ? ctx.lineTo(x, y) : ctx.moveTo(x, y)));
+    ctx.closePath();
+    ctx.stroke();
+    ctx.fillStyle = "#ffffff";
+    ctx.fillText(String(m.id), c[0][0], c[0][1] - 6);
+  }
+  note.textContent = `Frame ${frame.sequence}: ${frame.markers.length} markers (${frame.markers.map((m) => m.id).join(", ") || "none"})`;
 }
 
 // ---- controls ----

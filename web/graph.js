@@ -4,7 +4,9 @@
 import * as THREE from "three";
 import { OrbitControls } from "/vendor/three/OrbitControls.js";
 
-const COLOURS = { keyframe: 0x2f6fde, marker: 0xf29b30, wall: 0x8fd19e, doorway: 0xd98cf2, room: 0xe8f5eb, corridor: 0x9fb8ee };
+const COLOURS = { robot: 0xe5484d, keyframe: 0x2f6fde, marker: 0xf29b30, wall: 0x8fd19e, doorway: 0xd98cf2, room: 0xe8f5eb, corridor: 0x9fb8ee };
+// Farther apart than this, keyframes with consecutive ids are not one robot's steps.
+const KEYFRAME_STEP_M = 1.5;
 // Rebuilding the scene costs a few milliseconds for a building-sized map: at most this often.
 const REBUILD_MS = 1000;
 
@@ -24,6 +26,9 @@ export class GraphView {
     this.group = new THREE.Group();
     this.scene.add(this.group);
     this.pickable = [];
+    this.sphere = new THREE.SphereGeometry(1, 16, 12);
+    this.materials = new Map();
+    this.labels = new Map();
     this.builtAt = 0;
     this.fitted = false;
     this.listen();
@@ -50,30 +55,30 @@ export class GraphView {
     return new THREE.Vector3(p[0], layer * this.layerGap, -p[2]);
   }
 
-  update(map, selection) {
+  update(map, selection, robotsHere = []) {
     const now = performance.now();
     const sameMap = this.mapId === (map && map.id);
     if (sameMap && now - this.builtAt < REBUILD_MS && this.selection === selection) {
       clearTimeout(this.later);
-      this.later = setTimeout(() => this.update(map, selection), REBUILD_MS);
+      this.later = setTimeout(() => this.update(map, selection, robotsHere), REBUILD_MS);
       return;
     }
     if (!sameMap) this.fitted = false;
     this.mapId = map && map.id;
     this.selection = selection;
     this.builtAt = now;
-    this.build(map, selection);
+    this.build(map, selection, robotsHere);
     this.render();
   }
 
-  build(map, selection) {
+  build(map, selection, robotsHere) {
+    // Spheres share one geometry and a material per colour, labels a material per text: a
+    // rebuild makes only the point and line buffers anew.
     for (const child of [...this.group.children]) {
       this.group.remove(child);
+      if (child.userData.shared) continue;
       if (child.geometry) child.geometry.dispose();
-      if (child.material) {
-        if (child.material.map) child.material.map.dispose();
-        child.material.dispose();
-      }
+      if (child.material) child.material.dispose();
     }
     this.pickable = [];
     if (!map) return;
@@ -97,10 +102,11 @@ export class GraphView {
     this.group.add(new THREE.Points(kfGeometry, new THREE.PointsMaterial({ color: COLOURS.keyframe, size: 4, sizeAttenuation: false })));
 
     const ball = (kind, id, p, radius, pick, label, selected) => {
-      const mesh = new THREE.Mesh(
-        new THREE.SphereGeometry(selected ? radius * 1.8 : radius, 16, 12),
-        new THREE.MeshBasicMaterial({ color: selected ? 0xffffff : COLOURS[kind] }),
-      );
+      const colour = selected ? 0xffffff : COLOURS[kind];
+      if (!this.materials.has(colour)) this.materials.set(colour, new THREE.MeshBasicMaterial({ color: colour }));
+      const mesh = new THREE.Mesh(this.sphere, this.materials.get(colour));
+      mesh.scale.setScalar(selected ? radius * 1.8 : radius);
+      mesh.userData.shared = true;
       mesh.position.copy(p);
       mesh.userData.pick = pick;
       this.group.add(mesh);
@@ -124,6 +130,10 @@ export class GraphView {
     for (const s of map.spaces) {
       ball(s.kind, s.id, this.at(s.centre, 2), r0 * 3, { kind: "space", id: s.id }, s.name, isSel("space", s.id));
     }
+    // Robots where they are now, on the keyframes' layer.
+    for (const r of robotsHere) {
+      ball("robot", r.robot_id, this.at(r.tracking.world_from_camera.translation_m, 0), r0 * 2.5, { kind: "robot", id: r.robot_id }, r.robot_id, isSel("robot", r.robot_id));
+    }
 
     // Edges: keyframe to keyframe, keyframe to the markers it saw, marker to wall and
     // doorway, wall and doorway to space.
@@ -132,7 +142,12 @@ export class GraphView {
       const p = nodes.get(a), q = nodes.get(b);
       if (p && q) list.push(p.x, p.y, p.z, q.x, q.y, q.z);
     };
-    for (let i = 1; i < keyframes.length; i++) edge(lines.keyframe, `keyframe/${keyframes[i - 1].id}`, `keyframe/${keyframes[i].id}`);
+    // Keyframes in the order they were made; in a merged map two robots' keyframes interleave,
+    // so only neighbours as close as a robot's keyframes follow each other are joined.
+    for (let i = 1; i < keyframes.length; i++) {
+      const a = nodes.get(`keyframe/${keyframes[i - 1].id}`), b = nodes.get(`keyframe/${keyframes[i].id}`);
+      if (a.distanceTo(b) < KEYFRAME_STEP_M) edge(lines.keyframe, `keyframe/${keyframes[i - 1].id}`, `keyframe/${keyframes[i].id}`);
+    }
     for (const m of map.markers.values()) for (const k of m.keyframes || []) edge(lines.marker, `keyframe/${k}`, `marker/${m.id}`);
     for (const w of map.walls.values()) for (const m of w.markers) edge(lines.structure, `marker/${m}`, `wall/${w.id}`);
     for (const d of map.doorways.values()) {
@@ -156,6 +171,17 @@ export class GraphView {
 
   // A name that always faces the camera.
   label(text, p, radius) {
+    if (!this.labels.has(text)) this.labels.set(text, this.labelMaterial(text));
+    const { material, aspect } = this.labels.get(text);
+    const sprite = new THREE.Sprite(material);
+    sprite.userData.shared = true;
+    const h = this.layerGap / 8;
+    sprite.scale.set(h * aspect, h, 1);
+    sprite.position.set(p.x, p.y + radius + h, p.z);
+    return sprite;
+  }
+
+  labelMaterial(text) {
     const canvas = document.createElement("canvas");
     const ctx = canvas.getContext("2d");
     ctx.font = "bold 28px system-ui, sans-serif";
@@ -164,11 +190,8 @@ export class GraphView {
     ctx.font = "bold 28px system-ui, sans-serif";
     ctx.fillStyle = "#ffffff";
     ctx.fillText(text, 4, 28);
-    const sprite = new THREE.Sprite(new THREE.SpriteMaterial({ map: new THREE.CanvasTexture(canvas), depthTest: false }));
-    const h = this.layerGap / 8;
-    sprite.scale.set((h * canvas.width) / canvas.height, h, 1);
-    sprite.position.set(p.x, p.y + radius + h, p.z);
-    return sprite;
+    const material = new THREE.SpriteMaterial({ map: new THREE.CanvasTexture(canvas), depthTest: false });
+    return { material, aspect: canvas.width / canvas.height };
   }
 
   fit() {

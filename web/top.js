@@ -145,8 +145,10 @@ export class TopView {
 
     // Paths, per robot in its colour.
     ctx.lineWidth = 1.5;
+    const drawnPaths = [];
     for (const [robot, positions] of paths) {
       if (positions.length < 2) continue;
+      drawnPaths.push({ robot, positions: positions.length });
       ctx.strokeStyle = robots.colour(robot);
       ctx.beginPath();
       positions.forEach(([x, , z], i) => (i ? ctx.lineTo(...S(x, z)) : ctx.moveTo(...S(x, z))));
@@ -228,6 +230,7 @@ export class TopView {
       doorways: this.shapes.doorways.map((d) => ({ id: d.id, at: S(...d.at) })),
       robots: this.shapes.robots.map((r) => ({ id: r.id, at: S(...r.at) })),
       markers: this.shapes.markers.length,
+      paths: drawnPaths,
     });
   }
 

@@ -183,6 +183,10 @@ async fn the_page_draws_seq01_live_and_shows_what_is_clicked() {
             .all(|s| s["outline"] == true));
         assert_eq!(drawn["doorways"][0]["id"], door.id);
         assert_eq!(drawn["robots"][0]["id"], "sim-1");
+        // Its path: the walk goes round both rooms, metres long, in positions 5 cm apart.
+        assert_eq!(drawn["paths"][0]["robot"], "sim-1");
+        let positions = drawn["paths"][0]["positions"].as_u64().unwrap();
+        assert!(positions > 100, "{drawn}");
 
         // Clicking the room's centre on the canvas shows its details.
         let at = drawn["spaces"]

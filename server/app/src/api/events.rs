@@ -4,8 +4,9 @@
 //! Each connection has its own [`Watcher`], which remembers what it sent and, every
 //! [`TICK`], sends only what changed since: robots whose status changed, per map the keyframes
 //! and markers that are new or moved, the semantic layer when it changed, a robot's path
-//! beyond what was sent, merges. Points, the bulk of a map, go at most every
-//! [`POINTS_EVERY`], decimated. A slow page makes its own watcher wait (the channel is
+//! beyond what was sent, merges. Points, the bulk of a map, go decimated and to the centimetre,
+//! at most every [`POINTS_EVERY`] and only when their number changed by a hundredth (or by any
+//! amount after [`POINTS_AT_LEAST_EVERY`]). A slow page makes its own watcher wait (the channel is
 //! bounded), never the robots.
 
 use super::{ApiState, Failure};
@@ -27,7 +28,11 @@ use vsgraphs_proto::api::{
 pub(crate) const TICK: Duration = Duration::from_millis(500);
 /// How often a map's points are sent at most, and how many.
 pub(crate) const POINTS_EVERY: Duration = Duration::from_secs(5);
+pub(crate) const POINTS_AT_LEAST_EVERY: Duration = Duration::from_secs(30);
 pub(crate) const PAGE_POINTS: usize = 4_000;
+/// Points are drawn, not measured: to the centimetre (map points are no better), which halves
+/// their JSON.
+const POINT_STEP_M: f32 = 0.01;
 /// Pages open at once; more are refused (each costs a look at every robot and map per tick).
 pub(crate) const MAX_PAGES: usize = 64;
 
@@ -206,7 +211,11 @@ impl Watcher {
         let points = (first || points_due(seen, view, now)).then(|| {
             seen.points_at = now;
             seen.points = view.point_count;
-            vsgraphs_pipeline::model::trimmed(view, PAGE_POINTS, true).points
+            let mut points = vsgraphs_pipeline::model::decimate(&view.points, PAGE_POINTS);
+            for p in points.iter_mut().flatten() {
+                *p = (*p / POINT_STEP_M).round() * POINT_STEP_M;
+            }
+            points
         });
         seen.view = view.clone();
         // A new snapshot with nothing above (keyframes moved under a centimetre, points
@@ -279,7 +288,11 @@ impl Watcher {
 }
 
 fn points_due(seen: &MapSeen, view: &MapView, now: Instant) -> bool {
-    seen.points != view.point_count && now.duration_since(seen.points_at) >= POINTS_EVERY
+    let waited = now.duration_since(seen.points_at);
+    let changed = seen.points.abs_diff(view.point_count);
+    changed > 0
+        && (waited >= POINTS_AT_LEAST_EVERY
+            || waited >= POINTS_EVERY && changed * 100 >= seen.points.max(1))
 }
 
 /// A view with `view`'s id and nothing in it: what a page has before its first event.
