@@ -48,6 +48,21 @@ fn main() -> anyhow::Result<()> {
     let timing = browser.eval("JSON.stringify(window.pageTiming)")?;
     println!("by then: {}", timing.as_str().unwrap_or("?"));
 
+    // How long a change takes to reach the page: the map's keyframe count as the API has it
+    // (asked every 10 ms on a thread) against the count the page shows (asked as often).
+    let delays = change_delays(&mut browser, &url, 8)?;
+    if !delays.is_empty() {
+        let mut sorted = delays.clone();
+        sorted.sort_by(f64::total_cmp);
+        println!(
+            "a new keyframe on the page after the API has it: median {:.0} ms, max {:.0} ms \
+             ({} keyframes)",
+            sorted[sorted.len() / 2],
+            sorted[sorted.len() - 1],
+            sorted.len()
+        );
+    }
+
     for view in ["top", "graph"] {
         browser.eval(&format!("document.getElementById('tab-{view}').click()"))?;
         std::thread::sleep(Duration::from_secs(2));
@@ -87,6 +102,83 @@ fn main() -> anyhow::Result<()> {
         browser.errors
     );
     Ok(())
+}
+
+/// For `count` new keyframes of the page's map: milliseconds from the API's first answer with
+/// the new count to the page's showing it.
+fn change_delays(browser: &mut Browser, url: &str, count: usize) -> anyhow::Result<Vec<f64>> {
+    let map_id = browser
+        .eval("document.getElementById('map-stats').dataset.mapId")?
+        .as_str()
+        .context("no map on the page")?
+        .to_owned();
+    let address = url
+        .trim_start_matches("http://")
+        .trim_end_matches('/')
+        .to_owned();
+    let start = Instant::now();
+    let (tx, rx) = std::sync::mpsc::channel::<(u64, f64)>();
+    let done = std::sync::Arc::new(std::sync::atomic::AtomicBool::new(false));
+    let stop = done.clone();
+    let watching = std::thread::spawn(move || -> anyhow::Result<()> {
+        let mut last = 0;
+        while start.elapsed() < Duration::from_secs(120)
+            && !stop.load(std::sync::atomic::Ordering::Relaxed)
+        {
+            let body = http_body(&address, &format!("/api/v1/maps/{map_id}?max_points=0"))?;
+            let view: Value = serde_json::from_str(&body)?;
+            let keyframes = view["keyframe_count"].as_u64().unwrap_or(0);
+            if keyframes != last {
+                last = keyframes;
+                if tx
+                    .send((keyframes, start.elapsed().as_secs_f64() * 1e3))
+                    .is_err()
+                {
+                    return Ok(());
+                }
+            }
+            std::thread::sleep(Duration::from_millis(10));
+        }
+        Ok(())
+    });
+    let mut api_at = std::collections::HashMap::new();
+    let mut delays = Vec::new();
+    let mut shown = 0;
+    while delays.len() < count && start.elapsed() < Duration::from_secs(120) {
+        while let Ok((keyframes, at)) = rx.try_recv() {
+            api_at.entry(keyframes).or_insert(at);
+        }
+        let on_page =
+            as_f64(&browser.eval("document.getElementById('map-stats').dataset.keyframes")?) as u64;
+        if on_page != shown {
+            let now = start.elapsed().as_secs_f64() * 1e3;
+            // The first count seen is the one the page already had.
+            if shown != 0 {
+                if let Some(at) = api_at.get(&on_page) {
+                    delays.push(now - at);
+                }
+            }
+            shown = on_page;
+        }
+        std::thread::sleep(Duration::from_millis(10));
+    }
+    done.store(true, std::sync::atomic::Ordering::Relaxed);
+    drop(rx);
+    watching.join().expect("the watching thread")?;
+    Ok(delays)
+}
+
+/// The body of a plain HTTP GET (the server answers with a length).
+fn http_body(address: &str, path: &str) -> anyhow::Result<String> {
+    let mut stream = TcpStream::connect(address)?;
+    write!(
+        stream,
+        "GET {path} HTTP/1.1\r\nHost: {address}\r\nConnection: close\r\n\r\n"
+    )?;
+    let mut response = String::new();
+    stream.read_to_string(&mut response)?;
+    let (_, body) = response.split_once("\r\n\r\n").context("no body")?;
+    Ok(body.to_owned())
 }
 
 fn as_f64(value: &Value) -> f64 {
