@@ -55,6 +55,7 @@ impl TestServer {
     }
 
     pub async fn start_with(adjust: impl FnOnce(&mut Config)) -> Self {
+        log_if_asked();
         let zenoh_endpoint = format!("tcp/127.0.0.1:{}", free_port());
         let mut config = Config::default();
         config.http.listen = "127.0.0.1:0".parse().unwrap();
@@ -89,6 +90,17 @@ impl TestServer {
         )
         .await;
         robot
+    }
+}
+
+/// The server's log on the test's output when `VSGRAPHS_TEST_LOG` holds a filter
+/// (`VSGRAPHS_TEST_LOG=vsgraphs_slam=debug`): how a test that failed came to fail.
+pub fn log_if_asked() {
+    if let Ok(filter) = std::env::var("VSGRAPHS_TEST_LOG") {
+        let _ = tracing_subscriber::fmt()
+            .with_env_filter(tracing_subscriber::EnvFilter::new(filter))
+            .with_test_writer()
+            .try_init();
     }
 }
 

@@ -652,10 +652,7 @@ impl Tracker {
             .and_then(into_from_left)
             .unwrap_or(moved.into_from_merged);
         if let Some(last) = &mut self.last {
-            last.world_from_camera = correction.compose(&last.world_from_camera);
-            for point in last.points.iter_mut().flatten() {
-                *point = moved.point(*point);
-            }
+            last.moved(&correction, |p| moved.point(p));
         }
         self.reference = self.reference.map(|k| moved.keyframe(k));
         self.statistics.rename(|p| moved.point(p));
@@ -712,11 +709,7 @@ impl Tracker {
         };
         let created = points.iter().flatten().count();
         let pose = Se3::identity();
-        self.last = Some(LastFrame {
-            frame: kept,
-            world_from_camera: pose,
-            points,
-        });
+        self.last = Some(LastFrame::new(&map.read(), kept, pose, points));
         self.reference = Some(keyframe);
         self.state = TrackingState::Tracking;
         result.world_from_camera = Some(pose);
@@ -744,6 +737,13 @@ impl Tracker {
 
     /// Tracks against the last frame and the local map; `None` when the frame cannot be placed.
     fn track_frame(&mut self, map: &Map, frame: &Frame, rig: &Rig) -> Option<Tracked> {
+        if let Some(correction) = self.last.as_mut()?.follow_map(map) {
+            tracing::debug!(
+                stamp_ns = frame.timestamp_ns,
+                moved_m = correction.translation.norm(),
+                "the last frame follows its points, which the map moved"
+            );
+        }
         let last = self.last.as_ref()?;
         let predicted = self.predict(last, frame.timestamp_ns);
         let mut matched = last_frame::track_last_frame(map, frame, rig, last, &predicted);
@@ -870,11 +870,12 @@ impl Tracker {
                 .inverse()
                 .compose(&world_from_camera),
         });
-        self.last = Some(LastFrame {
+        self.last = Some(LastFrame::new(
+            &map.read(),
             frame,
             world_from_camera,
-            points: last_points,
-        });
+            last_points,
+        ));
         Ok(keyframe)
     }
 }

@@ -1,8 +1,9 @@
 //! Finding a lost robot in its map: from a mapped marker in view at once, else against the
-//! keyframes the place index finds by the frame's visual words, and as many more per frame in
-//! turn (the newest first, then back through the map): descriptor matches, a three-point
-//! RANSAC of rigid fits on the matches' depths (both sides' 3-D positions are known, which is
-//! more robust than PnP), pose optimisation, then the local map decides.
+//! keyframes the place index finds by the frame's visual words, then the keyframe the robot
+//! last tracked against, and as many more per frame in turn (the newest first, then back
+//! through the map): descriptor matches, a three-point RANSAC of rigid fits on the matches'
+//! depths (both sides' 3-D positions are known, which is more robust than PnP), pose
+//! optimisation, then the local map decides.
 
 use super::local_map::LocalMapSearch;
 use super::matches::{descriptor_query, optimise, Matched, Source, Tracked};
@@ -51,7 +52,8 @@ impl Relocaliser {
 
     /// A mapped marker in view gives the pose at once (then the local map around the
     /// keyframes that saw it refines it); otherwise the keyframes the frame's words point to,
-    /// then the next few keyframes in turn.
+    /// then `fallback_reference` (where the robot last was), then the next few keyframes in
+    /// turn.
     #[allow(clippy::too_many_arguments)]
     pub fn relocalise(
         &mut self,
@@ -81,10 +83,34 @@ impl Relocaliser {
             self.cursor = 0;
             return tracked;
         }
-        // Then as many again of the map in turn, newest first: a robot that has just lost
-        // track is most likely near its newest keyframes, and words can miss a place whose
-        // texture repeats elsewhere.
+        // Then the keyframe the robot last tracked against: in a map that other robots extend
+        // too, the newest keyframes may be theirs, while a robot that has just lost track is
+        // most likely where it last was.
         let mut tries = self.candidates.min(keyframes);
+        if let Some(k) = fallback_reference.filter(|k| {
+            !by_words.contains(k)
+                && map
+                    .keyframes
+                    .get(k.0 as usize)
+                    .is_some_and(|f| !f.is_culled())
+        }) {
+            tries -= 1;
+            if let Some(tracked) = try_keyframe(
+                map,
+                frame,
+                rig,
+                search,
+                k,
+                fallback_reference,
+                seen,
+                statistics,
+            ) {
+                self.cursor = 0;
+                return Some(tracked);
+            }
+        }
+        // Then the rest of the map in turn, newest first (words can miss a place whose texture
+        // repeats elsewhere).
         for _ in 0..keyframes {
             if tries == 0 {
                 break;
@@ -92,7 +118,8 @@ impl Relocaliser {
             // Newest first, then backwards through the map, passing culled keyframes by.
             let k = KeyFrameId((keyframes - 1 - self.cursor % keyframes) as u32);
             self.cursor += 1;
-            if map.keyframe(k).is_culled() || by_words.contains(&k) {
+            if map.keyframe(k).is_culled() || by_words.contains(&k) || Some(k) == fallback_reference
+            {
                 continue;
             }
             tries -= 1;
