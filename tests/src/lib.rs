@@ -104,6 +104,139 @@ pub fn log_if_asked() {
     }
 }
 
+/// What `/metrics` said of one robot, as a Prometheus text-format parser reads it.
+pub struct RobotMetrics {
+    pub scrape: prometheus_parse::Scrape,
+    pub robot: String,
+}
+
+impl RobotMetrics {
+    /// A sample of a counter or gauge with these labels.
+    pub fn number(&self, name: &str, labels: &[(&str, &str)]) -> Option<f64> {
+        self.scrape.samples.iter().find_map(|s| {
+            let matches =
+                s.metric == name && labels.iter().all(|(k, v)| s.labels.get(k) == Some(*v));
+            match (&s.value, matches) {
+                (prometheus_parse::Value::Counter(x) | prometheus_parse::Value::Gauge(x), true) => {
+                    Some(*x)
+                }
+                _ => None,
+            }
+        })
+    }
+
+    /// The robot's counter or gauge `name`.
+    pub fn of_robot(&self, name: &str) -> f64 {
+        let robot = [("robot", self.robot.as_str())];
+        self.number(name, &robot)
+            .unwrap_or_else(|| panic!("no {name} for {}", self.robot))
+    }
+
+    /// Observations in the robot's histogram of stage `stage` (its `+Inf` bucket).
+    pub fn observations(&self, stage: &str) -> f64 {
+        let (name, labels) = match stage {
+            "latency" => (
+                "vsgraphs_frame_latency_seconds",
+                vec![("robot", self.robot.as_str())],
+            ),
+            _ => (
+                "vsgraphs_stage_seconds",
+                vec![("robot", self.robot.as_str()), ("stage", stage)],
+            ),
+        };
+        self.scrape
+            .samples
+            .iter()
+            .filter(|s| s.metric == name && labels.iter().all(|(k, v)| s.labels.get(k) == Some(*v)))
+            .find_map(|s| match &s.value {
+                prometheus_parse::Value::Histogram(buckets) => {
+                    Some(buckets.iter().map(|b| b.count).fold(0.0, f64::max))
+                }
+                _ => None,
+            })
+            .unwrap_or_else(|| panic!("no histogram {name} {labels:?}"))
+    }
+}
+
+/// Reads `/metrics` and checks that it says what the JSON API says of `robot` and of every map:
+/// its frame counters, rejections by reason, presence, frames tracked, a processing time for
+/// every processed frame, the maps' sizes.
+pub async fn assert_metrics_agree(test: &TestServer, robot: &str) -> RobotMetrics {
+    use vsgraphs_proto::api::Presence;
+    let url = format!("http://{}/metrics", test.server.http_addr());
+    let response = reqwest::get(&url).await.expect("/metrics answers");
+    assert_eq!(response.status(), 200);
+    let content_type = response.headers()["content-type"]
+        .to_str()
+        .unwrap()
+        .to_owned();
+    assert!(
+        content_type.starts_with("text/plain; version=0.0.4"),
+        "{content_type}"
+    );
+    let text = response.text().await.unwrap();
+    let scrape = prometheus_parse::Scrape::parse(text.lines().map(|l| Ok(l.to_owned())))
+        .expect("/metrics parses as Prometheus's text format");
+    let metrics = RobotMetrics {
+        scrape,
+        robot: robot.to_owned(),
+    };
+    let status = test.client.robot(robot).await.unwrap();
+    let f = &status.frames;
+    for (name, value) in [
+        ("vsgraphs_frames_received_total", f.received),
+        ("vsgraphs_frames_processed_total", f.processed),
+        ("vsgraphs_frames_dropped_total", f.dropped),
+        (
+            "vsgraphs_frames_dropped_over_rate_total",
+            f.dropped_over_rate,
+        ),
+        ("vsgraphs_frames_lost_total", f.lost),
+    ] {
+        assert_eq!(metrics.of_robot(name), value as f64, "{name}");
+    }
+    for (reason, n) in &f.rejected_by_reason {
+        let labels = [("robot", robot), ("reason", reason.as_str())];
+        assert_eq!(
+            metrics.number("vsgraphs_frames_rejected_total", &labels),
+            Some(*n as f64),
+            "{reason}"
+        );
+    }
+    let online = f64::from(u8::from(status.presence == Presence::Online));
+    assert_eq!(metrics.of_robot("vsgraphs_robot_online"), online);
+    if let Some(tracking) = &status.tracking {
+        assert_eq!(
+            metrics.of_robot("vsgraphs_frames_tracked_total"),
+            tracking.frames_tracked as f64
+        );
+    }
+    for stage in ["processing", "decode", "detection"] {
+        assert_eq!(metrics.observations(stage), f.processed as f64, "{stage}");
+    }
+    for map in test.client.server_maps().await.unwrap() {
+        let id = map.id.to_string();
+        let of_map = [("map", id.as_str())];
+        for (name, value) in [
+            ("vsgraphs_map_keyframes", map.keyframes),
+            ("vsgraphs_map_points", map.points),
+            ("vsgraphs_map_markers", map.markers),
+        ] {
+            assert_eq!(
+                metrics.number(name, &of_map),
+                Some(value as f64),
+                "{name} of map {id}"
+            );
+        }
+    }
+    eprintln!(
+        "/metrics: {} samples, {} bytes",
+        metrics.scrape.samples.len(),
+        text.len()
+    );
+    metrics
+}
+
 /// Polls `check` until it returns Some, or panics with `what` after `timeout`.
 pub async fn wait_for<T, F, Fut>(what: &str, timeout: Duration, mut check: F) -> T
 where

@@ -203,6 +203,8 @@ async fn bad_frames_are_rejected_with_reasons_and_the_stream_goes_on() {
     assert_eq!(f.lost, 1, "the frame zenoh dropped");
     assert_eq!(status.presence, Presence::Online);
     assert_eq!(ColourEncoding::Jpeg as i32, colour.encoding);
+    // Prometheus sees the same counts, rejections by reason among them.
+    assert_metrics_agree(&test, "clumsy").await;
 
     // A second robot vanishes mid-stream without saying goodbye.
     let ghost = test.robot("ghost").await;

@@ -142,6 +142,11 @@ async fn live_tracking_matches_the_offline_run() {
         worst < 1e-9,
         "live and offline trajectories differ by {worst}"
     );
+    let metrics = assert_metrics_agree(&test, "kinect").await;
+    // Every frame tracked: each stage of tracking saw every frame.
+    for stage in ["features", "tracking", "mapping"] {
+        assert_eq!(metrics.observations(stage), FRAMES as f64, "{stage}");
+    }
     robot.close().await.unwrap();
     test.server.stop().await.unwrap();
 }

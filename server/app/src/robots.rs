@@ -5,6 +5,7 @@
 
 use crate::history::History;
 use crate::queue::FrameQueue;
+use prometheus_client::metrics::histogram::{exponential_buckets, Histogram};
 use std::collections::{BTreeMap, BTreeSet, HashMap, VecDeque};
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex, RwLock};
@@ -42,6 +43,52 @@ pub struct RobotEntry {
     rate: Mutex<RateLimit>,
     state: Mutex<RobotState>,
     latest: Mutex<Option<Arc<FrameDetections>>>,
+    /// Every processed frame's times, for `/metrics`.
+    pub histograms: StageHistograms,
+}
+
+/// Histograms of a robot's frame times since it arrived, seconds: what Prometheus scrapes
+/// (`status` reports the means over the last few seconds).
+#[derive(Debug)]
+pub struct StageHistograms {
+    /// From the frame's capture stamp to the end of its processing.
+    pub latency: Histogram,
+    /// The server's whole processing of the frame, and its stages.
+    pub processing: Histogram,
+    pub decode: Histogram,
+    pub detection: Histogram,
+    pub features: Histogram,
+    pub tracking: Histogram,
+    pub mapping: Histogram,
+}
+
+impl StageHistograms {
+    fn new() -> Self {
+        // 0.5 ms to about 4 s in factors of two: a stage of a frame at 30 Hz is a few
+        // milliseconds, a frame that waited behind a merge or a stalled robot seconds.
+        let histogram = || Histogram::new(exponential_buckets(0.0005, 2.0, 14));
+        Self {
+            latency: histogram(),
+            processing: histogram(),
+            decode: histogram(),
+            detection: histogram(),
+            features: histogram(),
+            tracking: histogram(),
+            mapping: histogram(),
+        }
+    }
+
+    /// Each histogram with its stage's name.
+    pub fn named(&self) -> [(&'static str, &Histogram); 6] {
+        [
+            ("processing", &self.processing),
+            ("decode", &self.decode),
+            ("detection", &self.detection),
+            ("features", &self.features),
+            ("tracking", &self.tracking),
+            ("mapping", &self.mapping),
+        ]
+    }
 }
 
 struct RobotState {
@@ -101,6 +148,7 @@ impl RobotEntry {
             rate: Mutex::new(RateLimit::new(max_rate_hz)),
             state: Mutex::new(RobotState::new(trajectory_poses)),
             latest: Mutex::new(None),
+            histograms: StageHistograms::new(),
         }
     }
 
@@ -161,6 +209,13 @@ impl RobotEntry {
     /// A frame was processed: its detections become the robot's latest.
     pub fn record_processed(&self, detections: FrameDetections, times: ProcessingTimes) {
         let latency_ms = (now_ns() as f64 - detections.timestamp_ns as f64) / 1e6;
+        let h = &self.histograms;
+        if latency_ms >= 0.0 {
+            h.latency.observe(latency_ms / 1e3);
+        }
+        h.processing.observe(times.total.as_secs_f64());
+        h.decode.observe(times.decode.as_secs_f64());
+        h.detection.observe(times.detection.as_secs_f64());
         {
             let mut state = self.state();
             state.processed += 1;
@@ -270,6 +325,10 @@ impl RobotEntry {
                 if let Some(event) = &result.event {
                     note(&mut status, event.clone());
                 }
+                let h = &self.histograms;
+                h.features.observe(result.times.features.as_secs_f64());
+                h.tracking.observe(result.times.tracking.as_secs_f64());
+                h.mapping.observe(result.times.mapping.as_secs_f64());
                 let now = Instant::now();
                 let ms = |d: Duration| d.as_secs_f64() * 1e3;
                 state.tracking_recent.push_back((

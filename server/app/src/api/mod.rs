@@ -9,6 +9,7 @@ pub mod dictionary;
 pub mod events;
 pub mod extract;
 pub mod maps;
+pub mod metrics;
 
 use crate::robots::Registry;
 use axum::extract::{DefaultBodyLimit, FromRef, State};
@@ -91,6 +92,7 @@ impl IntoResponse for Failure {
     ),
     paths(
         health,
+        metrics::scrape,
         list_robots,
         get_robot,
         get_detections,
@@ -180,6 +182,7 @@ pub fn router(
 ) -> Router {
     Router::new()
         .route("/api/v1/health", get(health))
+        .route("/metrics", get(metrics::scrape))
         .route("/api/v1/robots", get(list_robots))
         .route("/api/v1/robots/{robot_id}", get(get_robot))
         .route("/api/v1/robots/{robot_id}/detections", get(get_detections))
