@@ -4,9 +4,9 @@
 //! to the other, the map's Situational Graph, and the room the robot is in at the end of its walk;
 //! a dictionary replaced through the API renames the rooms without restarting the robot.
 
-use std::collections::BTreeSet;
+use std::collections::{BTreeMap, BTreeSet};
 use std::time::Duration;
-use vsgraphs_proto::api::{GraphLayer, SpaceKind};
+use vsgraphs_proto::api::{GraphLayer, SceneGraph, SpaceKind};
 use vsgraphs_sdk::player::Rate;
 use vsgraphs_sdk::simulated::{self, SimOptions};
 use vsgraphs_sdk::{ClientError, Delivery, Robot, RobotConfig};
@@ -172,6 +172,8 @@ async fn the_api_answers_rooms_doorways_route_and_where_the_robot_is_after_seq01
         assert_eq!(walls.count(), 4, "{node}");
     }
 
+    exports_match_the_api(&test, map_id, &graph).await;
+
     // A dictionary replaced at run time renames the rooms without a frame more.
     let mut renamed = building.dictionary_v1();
     renamed["rooms"][0]["name"] = "Kitchen".into();
@@ -332,4 +334,122 @@ async fn hostile_requests(base: &str, map_id: u32, spaces: &[String]) {
         .await
         .unwrap();
     assert!(health.status().is_success());
+}
+
+/// The map's GraphML, read by an XML parser, holds the JSON graph's nodes with their layers,
+/// kinds, names and positions, and its edges; its PLY holds every point the map counts.
+async fn exports_match_the_api(test: &TestServer, map_id: u32, graph: &SceneGraph) {
+    use quick_xml::events::Event;
+    let base = format!("http://{}/api/v1/maps/{map_id}", test.server.http_addr());
+    let response = reqwest::get(format!("{base}/graph?format=graphml"))
+        .await
+        .unwrap();
+    assert_eq!(response.status(), 200);
+    assert_eq!(
+        response.headers()["content-type"],
+        "application/graphml+xml"
+    );
+    let xml = response.text().await.unwrap();
+    let mut reader = quick_xml::Reader::from_str(&xml);
+    // (node id, key → value) and (source, target), as the file says.
+    let mut nodes: Vec<(String, BTreeMap<String, String>)> = Vec::new();
+    let mut edges: Vec<(String, String)> = Vec::new();
+    let mut key: Option<(String, String)> = None;
+    let v1 = quick_xml::XmlVersion::Implicit1_0;
+    loop {
+        match reader.read_event().expect("well-formed XML") {
+            Event::Start(e) | Event::Empty(e) => {
+                let attribute = |name: &str| {
+                    e.try_get_attribute(name)
+                        .unwrap()
+                        .map(|a| a.normalized_value(v1).unwrap().into_owned())
+                };
+                match e.name().as_ref() {
+                    "node" => nodes.push((attribute("id").unwrap(), BTreeMap::new())),
+                    "edge" => {
+                        edges.push((attribute("source").unwrap(), attribute("target").unwrap()))
+                    }
+                    "data" => key = attribute("key").map(|k| (k, String::new())),
+                    _ => {}
+                }
+            }
+            Event::Text(t) => {
+                if let Some((_, text)) = &mut key {
+                    text.push_str(&t.xml_content(v1));
+                }
+            }
+            Event::GeneralRef(r) => {
+                if let Some((_, text)) = &mut key {
+                    let entity = r.xml_content(v1);
+                    let resolved = quick_xml::escape::resolve_predefined_entity(&entity);
+                    text.push_str(resolved.expect("only XML's own entities"));
+                }
+            }
+            Event::End(e) if e.name().as_ref() == "data" => {
+                if let (Some((k, text)), Some((_, data))) = (key.take(), nodes.last_mut()) {
+                    data.insert(k, text);
+                }
+            }
+            Event::Eof => break,
+            _ => {}
+        }
+    }
+    assert_eq!(nodes.len(), graph.nodes.len());
+    for ((id, data), node) in nodes.iter().zip(&graph.nodes) {
+        assert_eq!(id, &node.id);
+        let layer = serde_json::to_value(node.layer).unwrap();
+        assert_eq!(data["layer"], layer.as_str().unwrap(), "{id}");
+        assert_eq!(data["kind"], node.kind, "{id}");
+        assert_eq!(data.get("name"), node.name.as_ref(), "{id}");
+        for (axis, value) in ["x", "y", "z"].iter().zip(node.position) {
+            // serde_json reads floats to within an ulp, not always exactly.
+            let written: f64 = data[*axis].parse().unwrap();
+            assert!(
+                (written - value).abs() <= 1e-12,
+                "{id} {axis}: {written} vs {value}"
+            );
+        }
+    }
+    let expected: Vec<(String, String)> = graph
+        .edges
+        .iter()
+        .map(|e| (e.from.clone(), e.to.clone()))
+        .collect();
+    assert_eq!(edges, expected);
+
+    let ply = reqwest::get(format!("{base}/points.ply")).await.unwrap();
+    assert_eq!(ply.status(), 200);
+    let ply = ply.bytes().await.unwrap();
+    let end = b"end_header\n";
+    let body_at = ply.windows(end.len()).position(|w| w == end).unwrap() + end.len();
+    let header = std::str::from_utf8(&ply[..body_at]).unwrap();
+    assert!(
+        header.starts_with("ply\nformat binary_little_endian 1.0\n"),
+        "{header}"
+    );
+    let vertices: usize = header
+        .lines()
+        .find_map(|l| l.strip_prefix("element vertex "))
+        .unwrap()
+        .parse()
+        .unwrap();
+    let summary = test.client.server_maps().await.unwrap();
+    let points = summary.iter().find(|m| m.id == map_id).unwrap().points as usize;
+    // Every point the map counts (mapping may still cull a few as its last keyframes settle).
+    assert!(
+        vertices > 0 && vertices.abs_diff(points) as f64 <= 0.02 * points as f64,
+        "{vertices} vs {points}"
+    );
+    assert_eq!(ply.len() - body_at, vertices * 12);
+    let floats: Vec<f32> = ply[body_at..]
+        .chunks_exact(4)
+        .map(|b| f32::from_le_bytes(b.try_into().unwrap()))
+        .collect();
+    assert!(floats.iter().all(|x| x.is_finite() && x.abs() < 100.0));
+    eprintln!(
+        "exports: GraphML {} bytes ({} nodes), PLY {} points",
+        xml.len(),
+        nodes.len(),
+        vertices
+    );
 }

@@ -587,6 +587,15 @@ impl MapService {
         Ok(vsgraphs_slam::archive::encode(&map))
     }
 
+    /// Every point of map `id` (not the snapshot's, which are thinned beyond
+    /// [`crate::model::SNAPSHOT_POINTS`]), metres in its frame; read under the map's lock, as an
+    /// export is.
+    pub fn points(&self, id: MapId) -> Result<Vec<[f32; 3]>, TrackError> {
+        let entry = self.entry(id)?;
+        let map = entry.map.read();
+        Ok(crate::model::point_positions(&map))
+    }
+
     /// How the maps the service starts itself (imported ones) are mapped: as the server's
     /// robots map theirs.
     pub fn with_mapping(self, settings: MappingConfig) -> Self {

@@ -37,12 +37,7 @@ pub fn map_view(
     semantics: Option<&SemanticMap>,
     dictionary: Option<&Dictionary>,
 ) -> MapView {
-    let live: Vec<[f32; 3]> = map
-        .points
-        .iter()
-        .filter(|p| !p.bad)
-        .map(|p| p.position.map(|x| x as f32).into())
-        .collect();
+    let live = point_positions(map);
     let point_count = live.len() as u64;
     let mut view = MapView {
         id: id.0,
@@ -266,6 +261,15 @@ pub fn decimate<T: Clone>(items: &[T], at_most: usize) -> Vec<T> {
     }
     let stride = items.len().div_ceil(at_most).max(1);
     items.iter().step_by(stride).cloned().collect()
+}
+
+/// The positions of the map's points that are not culled, metres.
+pub fn point_positions(map: &Map) -> Vec<[f32; 3]> {
+    map.points
+        .iter()
+        .filter(|p| !p.bad)
+        .map(|p| p.position.map(|x| x as f32).into())
+        .collect()
 }
 
 /// A snapshot with its points thinned to at most `max_points` and, unless `lists`, without

@@ -78,16 +78,28 @@ pub(super) async fn file(
         .await
         .map_err(|e| Failure::internal(format!("exporting map {map_id}: {e}")))?
         .map_err(|_| Failure::not_found("map_not_found", format!("there is no map {map_id}")))?;
-    Ok((
-        [
-            (header::CONTENT_TYPE, "application/octet-stream".to_owned()),
-            (
-                header::CONTENT_DISPOSITION,
-                format!("attachment; filename=\"map-{map_id}.vsgmap\""),
-            ),
-        ],
+    Ok(download(
+        "application/octet-stream",
+        format!("map-{map_id}.vsgmap"),
         bytes,
     ))
+}
+
+/// A file to save: its type, the name to save it under, its bytes.
+fn download(
+    content_type: &'static str,
+    file_name: String,
+    body: impl IntoResponse,
+) -> axum::response::Response {
+    let disposition = format!("attachment; filename=\"{file_name}\"");
+    (
+        [
+            (header::CONTENT_TYPE, content_type.to_owned()),
+            (header::CONTENT_DISPOSITION, disposition),
+        ],
+        body,
+    )
+        .into_response()
 }
 
 /// Adds the map in a map file (from `GET /api/v1/maps/{map_id}/file`) as a new map of the
@@ -368,20 +380,74 @@ pub(super) async fn route(
     }))
 }
 
+/// Query of `GET /api/v1/maps/{map_id}/graph`.
+#[derive(Debug, serde::Deserialize, utoipa::IntoParams)]
+pub(super) struct GraphQuery {
+    /// `json` (the default) or `graphml`.
+    format: Option<String>,
+}
+
 /// A map's Situational Graph in one document: keyframes and markers, walls and doorways, rooms
-/// and corridors, and the edges between the layers.
+/// and corridors, and the edges between the layers; as JSON, or as GraphML for graph tools.
 #[utoipa::path(
     get,
     path = "/api/v1/maps/{map_id}/graph",
-    params(("map_id" = u32, Path, description = "The map's id on the server")),
-    responses((status = 200, body = SceneGraph), (status = 404, body = ApiError))
+    params(("map_id" = u32, Path, description = "The map's id on the server"), GraphQuery),
+    responses(
+        (status = 200, body = SceneGraph, description = "JSON, or GraphML with `?format=graphml`"),
+        (status = 400, body = ApiError, description = "unknown format"),
+        (status = 404, body = ApiError)
+    )
 )]
 pub(super) async fn graph(
     State(state): State<ApiState>,
     Path(map_id): Path<u32>,
-) -> Result<Json<SceneGraph>, Failure> {
+    Query(query): Query<GraphQuery>,
+) -> Result<axum::response::Response, Failure> {
+    let graphml = super::json_or(query.format.as_deref(), "graphml")?;
     let view = published(&state.maps, map_id)?.view;
-    Ok(Json(scene_graph(&view)))
+    let graph = scene_graph(&view);
+    if !graphml {
+        return Ok(Json(graph).into_response());
+    }
+    Ok(download(
+        super::exports::GRAPHML_TYPE,
+        format!("map-{map_id}.graphml"),
+        super::exports::graphml(&graph),
+    ))
+}
+
+/// A map's points, every one not culled, as a binary PLY file (x, y, z floats in metres, in the
+/// map's frame) for point-cloud tools.
+#[utoipa::path(
+    get,
+    path = "/api/v1/maps/{map_id}/points.ply",
+    params(("map_id" = u32, Path, description = "The map's id on the server")),
+    responses(
+        (status = 200, description = "binary little-endian PLY", content_type = "application/octet-stream"),
+        (status = 404, body = ApiError)
+    )
+)]
+pub(super) async fn points_ply(
+    State(state): State<ApiState>,
+    Path(map_id): Path<u32>,
+) -> Result<impl IntoResponse, Failure> {
+    let comment = format!("vsgraphs map {map_id}, metres");
+    // Reading a large map's points and writing them takes milliseconds: off the runtime.
+    let bytes = tokio::task::spawn_blocking(move || {
+        let points = state.maps.points(MapId(map_id))?;
+        Ok(super::exports::ply(&points, &comment))
+    })
+    .await
+    .map_err(|e| Failure::internal(format!("writing map {map_id}'s points: {e}")))?
+    .map_err(|_: vsgraphs_slam::TrackError| {
+        Failure::not_found("map_not_found", format!("there is no map {map_id}"))
+    })?;
+    Ok(download(
+        "application/octet-stream",
+        format!("map-{map_id}.ply"),
+        bytes,
+    ))
 }
 
 /// The layers of `view` as graph nodes, and their edges.

@@ -7,6 +7,7 @@
 pub mod access;
 pub mod dictionary;
 pub mod events;
+pub mod exports;
 pub mod extract;
 pub mod maps;
 pub mod metrics;
@@ -116,6 +117,7 @@ impl IntoResponse for Failure {
         maps::walls,
         maps::route,
         maps::graph,
+        maps::points_ply,
         events::stream
     ),
     components(schemas(
@@ -219,6 +221,7 @@ pub fn router(
         .route("/api/v1/maps/{map_id}/walls", get(maps::walls))
         .route("/api/v1/maps/{map_id}/route", get(maps::route))
         .route("/api/v1/maps/{map_id}/graph", get(maps::graph))
+        .route("/api/v1/maps/{map_id}/points.ply", get(maps::points_ply))
         .route("/api/v1/events", get(events::stream))
         .route(
             "/api/v1/openapi.json",
@@ -232,6 +235,20 @@ pub fn router(
             pages: Arc::new(tokio::sync::Semaphore::new(events::MAX_PAGES)),
             stopping,
         })
+}
+
+/// Whether `?format=` asks for `other` rather than JSON (the default); 400 `unknown_format`
+/// for anything else.
+fn json_or(format: Option<&str>, other: &str) -> Result<bool, Failure> {
+    match format {
+        None | Some("json") => Ok(false),
+        Some(f) if f == other => Ok(true),
+        Some(f) => Err(Failure {
+            status: StatusCode::BAD_REQUEST,
+            code: "unknown_format",
+            message: format!("format {f:?}: expected json or {other}"),
+        }),
+    }
 }
 
 async fn unknown_endpoint(Path(rest): Path<String>) -> Failure {
@@ -339,17 +356,7 @@ async fn get_trajectory(
         .get(&robot_id)
         .ok_or_else(|| unknown_robot(&robot_id))?;
     let mut poses = robot.trajectory();
-    let tum = match query.format.as_deref() {
-        None | Some("json") => false,
-        Some("tum") => true,
-        Some(other) => {
-            return Err(Failure {
-                status: StatusCode::BAD_REQUEST,
-                code: "unknown_format",
-                message: format!("format {other:?}: expected json or tum"),
-            })
-        }
-    };
+    let tum = json_or(query.format.as_deref(), "tum")?;
     let map = query
         .map
         .or_else(|| tum.then(|| poses.last().map(|p| p.map)).flatten());
