@@ -208,7 +208,8 @@ async fn a_flooding_robot_is_held_to_its_rate_and_another_keeps_its_pace() {
 async fn made_up_robot_ids_hold_no_place_for_long() {
     let _alone = ONE_AT_A_TIME.lock().await;
     const MAX_ROBOTS: usize = 4;
-    const FORGET_AFTER_S: f64 = 1.0;
+    // Long enough that the late robot below finds the places still full on a loaded machine.
+    const FORGET_AFTER_S: f64 = 10.0;
     let test = TestServer::start_with(|c| {
         c.ingest.max_robots = MAX_ROBOTS;
         c.ingest.forget_after_s = FORGET_AFTER_S;
@@ -273,9 +274,25 @@ async fn made_up_robot_ids_hold_no_place_for_long() {
     send(&steady, &frame).await;
     processed("steady", 2).await;
     let late = test.robot("late").await;
+    send(&late, &frame).await;
+    wait_for(
+        "the late robot refused",
+        Duration::from_secs(30),
+        || async {
+            let refused = test.client.health().await.ok()?.frames_on_bad_keys;
+            (refused > health.frames_on_bad_keys).then_some(())
+        },
+    )
+    .await;
+    let robots = test.client.robots().await.unwrap();
+    assert_eq!(robots.len(), MAX_ROBOTS, "{robots:?}");
+    assert!(
+        !robots.iter().any(|r| r.robot_id == "late"),
+        "no place while the made-up ids hold them"
+    );
     let forgotten = wait_for(
         "the made-up ids forgotten",
-        Duration::from_secs(30),
+        Duration::from_secs(60),
         || async {
             let robots = test.client.robots().await.ok()?;
             (!robots.iter().any(|r| r.robot_id.starts_with("made-up"))).then_some(robots)
