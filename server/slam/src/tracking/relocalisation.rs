@@ -86,43 +86,31 @@ impl Relocaliser {
         // Then the keyframe the robot last tracked against: in a map that other robots extend
         // too, the newest keyframes may be theirs, while a robot that has just lost track is
         // most likely where it last was.
-        let mut tries = self.candidates.min(keyframes);
-        if let Some(k) = fallback_reference.filter(|k| {
-            !by_words.contains(k)
-                && map
-                    .keyframes
-                    .get(k.0 as usize)
-                    .is_some_and(|f| !f.is_culled())
-        }) {
-            tries -= 1;
-            if let Some(tracked) = try_keyframe(
-                map,
-                frame,
-                rig,
-                search,
-                k,
-                fallback_reference,
-                seen,
-                statistics,
-            ) {
-                self.cursor = 0;
-                return Some(tracked);
-            }
-        }
+        let tries = self.candidates.min(keyframes);
+        let mut order: Vec<KeyFrameId> = fallback_reference
+            .filter(|k| {
+                !by_words.contains(k)
+                    && map
+                        .keyframes
+                        .get(k.0 as usize)
+                        .is_some_and(|f| !f.is_culled())
+            })
+            .into_iter()
+            .collect();
         // Then the rest of the map in turn, newest first (words can miss a place whose texture
-        // repeats elsewhere).
+        // repeats elsewhere), passing culled keyframes by.
         for _ in 0..keyframes {
-            if tries == 0 {
+            if order.len() >= tries {
                 break;
             }
-            // Newest first, then backwards through the map, passing culled keyframes by.
             let k = KeyFrameId((keyframes - 1 - self.cursor % keyframes) as u32);
             self.cursor += 1;
-            if map.keyframe(k).is_culled() || by_words.contains(&k) || Some(k) == fallback_reference
-            {
-                continue;
+            let tried = by_words.contains(&k) || Some(k) == fallback_reference;
+            if !tried && !map.keyframe(k).is_culled() {
+                order.push(k);
             }
-            tries -= 1;
+        }
+        for k in order {
             if let Some(tracked) = try_keyframe(
                 map,
                 frame,
