@@ -24,6 +24,12 @@ struct Cli {
 }
 
 #[derive(Clone, Copy, ValueEnum)]
+enum WindowsArg {
+    Three,
+    One,
+}
+
+#[derive(Clone, Copy, ValueEnum)]
 enum StartArg {
     File,
     Chain,
@@ -260,6 +266,32 @@ enum Command {
         /// Matches a verified candidate's transform must explain.
         #[arg(long, default_value_t = vsgraphs_eval::places::PlacesOptions::default().min_inliers)]
         min_inliers: usize,
+        /// Print JSON instead of the table.
+        #[arg(long)]
+        json: bool,
+    },
+    /// Marker detection on its own: recall by distance, false detections and corner error on a
+    /// scenario's rendered frames (their truth known), and the detector's CPU time per frame;
+    /// with --images, CPU time on a folder of real colour frames (`*.color.jpg`).
+    Markers {
+        /// seq01 … seq06, two_robots, or a scenario JSON file (ignored with --images).
+        #[arg(default_value = "seq06")]
+        scenario: String,
+        /// Renderer noise and texture seed.
+        #[arg(long, default_value_t = 1)]
+        seed: u64,
+        /// Every how many frames of each walk one is searched.
+        #[arg(long, default_value_t = 10)]
+        every: usize,
+        /// Time the detector on this folder's colour frames instead.
+        #[arg(long)]
+        images: Option<PathBuf>,
+        /// The dictionary of --images' markers (OpenCV's name).
+        #[arg(long, default_value = "DICT_4X4_100")]
+        dictionary: String,
+        /// The adaptive threshold's windows: three (OpenCV's 3, 13 and 23 px) or one (13 px).
+        #[arg(long, value_enum, default_value = "three")]
+        threshold_windows: WindowsArg,
         /// Print JSON instead of the table.
         #[arg(long)]
         json: bool,
@@ -547,6 +579,53 @@ fn main() -> anyhow::Result<()> {
                 println!("{}", serde_json::to_string_pretty(&runs)?);
             } else {
                 vsgraphs_eval::places::print_table(&runs);
+            }
+        }
+        Command::Markers {
+            scenario,
+            seed,
+            every,
+            images,
+            dictionary,
+            threshold_windows,
+            json,
+        } => {
+            let refinement = vsgraphs_vision::aruco::CornerRefinement::Subpixel;
+            let windows = match threshold_windows {
+                WindowsArg::Three => vsgraphs_vision::aruco::ThresholdWindows::Three,
+                WindowsArg::One => vsgraphs_vision::aruco::ThresholdWindows::One,
+            };
+            if let Some(folder) = images {
+                let run =
+                    vsgraphs_eval::markers::run_images(&folder, &dictionary, refinement, windows)?;
+                if json {
+                    println!("{}", serde_json::to_string_pretty(&run)?);
+                } else {
+                    let s = &run.cpu_ms;
+                    println!(
+                        "{} frames, {} detections; CPU ms per frame: median {:.2}, mean {:.2}, p99 {:.2}",
+                        run.frames, run.detections, s.median, s.mean, s.p99
+                    );
+                }
+            } else {
+                let scenario = Scenario::load(&scenario)?;
+                let options = vsgraphs_eval::markers::MarkersOptions {
+                    seed,
+                    every,
+                    refinement,
+                    windows,
+                    ..Default::default()
+                };
+                let run = vsgraphs_eval::markers::run(&scenario, &options, |done, total| {
+                    if done % 200 == 0 || done == total {
+                        eprintln!("{done}/{total} frames");
+                    }
+                })?;
+                if json {
+                    println!("{}", serde_json::to_string_pretty(&run)?);
+                } else {
+                    vsgraphs_eval::markers::print_table(&run);
+                }
             }
         }
         Command::Posegraph {

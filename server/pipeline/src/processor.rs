@@ -80,7 +80,8 @@ impl FrameProcessor {
         maps: MapService,
     ) -> Result<Self, SetupError> {
         let dictionary = load_dictionary(settings)?;
-        let detector = MarkerDetector::new(dictionary, settings.corner_refinement)?;
+        let mut detector = MarkerDetector::new(dictionary, settings.corner_refinement)?;
+        detector.set_threshold_windows(settings.threshold_windows);
         let tracker = if tracking.enabled {
             Some(Tracker::new(tracking.tracker())?)
         } else {

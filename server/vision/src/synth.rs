@@ -177,7 +177,7 @@ fn texture(width: i32, height: i32) -> Result<Mat, CvError> {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::aruco::{CornerRefinement, MarkerDetector};
+    use crate::aruco::{CornerRefinement, MarkerDetector, ThresholdWindows};
     use crate::pose::PoseEstimator;
     use nalgebra::{Translation3, UnitQuaternion};
 
@@ -233,6 +233,63 @@ mod tests {
         for ((x, y), depth) in corners.iter().zip(depths) {
             let z = (truth * nalgebra::Point3::new(*x, *y, 0.0)).z;
             assert!((depth - z).abs() < 0.005, "{depth} against {z}");
+        }
+    }
+
+    /// One threshold window finds what three find, from a marker filling a third of the image
+    /// down to one near the smallest readable, with corners as close to the truth.
+    #[test]
+    fn one_threshold_window_finds_near_and_far_markers() {
+        let camera = camera();
+        let dictionary = MarkerDictionary::predefined("DICT_4X4_100").unwrap();
+        let facing = UnitQuaternion::from_euler_angles(std::f64::consts::PI, 0.0, 0.0);
+        let distances = [0.3, 1.0, 2.0, 3.0];
+        let mut worst = Vec::new();
+        for windows in [ThresholdWindows::Three, ThresholdWindows::One] {
+            let mut detector =
+                MarkerDetector::new(dictionary.clone(), CornerRefinement::Subpixel).unwrap();
+            detector.set_threshold_windows(windows);
+            // 0.08 m markers: 160 px down to 16 px wide.
+            let worst_of: Vec<f64> = distances
+                .iter()
+                .enumerate()
+                .map(|(k, &distance)| {
+                    let truth = Isometry3::from_parts(
+                        Translation3::new(0.02, -0.01, distance),
+                        UnitQuaternion::from_euler_angles(0.3, -0.2, 0.1) * facing,
+                    );
+                    let id = 3 + k as i32;
+                    let marker = PlacedMarker {
+                        id,
+                        side_m: 0.08,
+                        camera_from_marker: truth,
+                    };
+                    let frame = render(&camera, &dictionary, &[marker], distance + 1.0).unwrap();
+                    let found = detector.detect(&frame.grey).unwrap();
+                    let ids: Vec<i32> = found.iter().map(|d| d.id).collect();
+                    assert_eq!(ids, [id], "{windows:?} at {distance} m");
+                    let h = 0.04;
+                    [(-h, h), (h, h), (h, -h), (-h, -h)]
+                        .into_iter()
+                        .zip(found[0].corners)
+                        .map(|((x, y), corner)| {
+                            let p =
+                                camera.project(&(truth * nalgebra::Point3::new(x, y, 0.0)).coords);
+                            (f64::from(corner[0]) - p.x).hypot(f64::from(corner[1]) - p.y)
+                        })
+                        .fold(0.0, f64::max)
+                })
+                .collect();
+            eprintln!("{windows:?}: worst corner per distance {worst_of:.3?} px");
+            worst.push(worst_of);
+        }
+        for (k, distance) in distances.iter().enumerate() {
+            assert!(
+                worst[1][k] <= worst[0][k] + 0.1 && worst[1][k] < 1.5,
+                "at {distance} m: one window {} px, three {} px",
+                worst[1][k],
+                worst[0][k]
+            );
         }
     }
 }
