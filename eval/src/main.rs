@@ -289,7 +289,7 @@ enum Command {
         /// The dictionary of --images' markers (OpenCV's name).
         #[arg(long, default_value = "DICT_4X4_100")]
         dictionary: String,
-        /// The adaptive threshold's windows: three (OpenCV's 3, 13 and 23 px) or one (13 px).
+        /// The adaptive threshold's windows: three (OpenCV's 3, 13 and 23 px) or one (7 px).
         #[arg(long, value_enum, default_value = "three")]
         threshold_windows: WindowsArg,
         /// Print JSON instead of the table.

@@ -38,13 +38,13 @@ pub enum ThresholdWindows {
     Three,
     /// One of 7 px. A marker's black border against its white margin closes one outline
     /// under any window wider than a cell of the smallest readable marker and narrower than the
-    /// margin, so one window finds what three do; the 3 px window mostly turns texture and
-    /// sensor noise into contours to reject. About half the CPU time on frames without markers.
+    /// margin, so one window finds what three do, and each window saved is a threshold and a
+    /// contour search over the whole image: about half the CPU time.
     One,
 }
 
-/// The window kept by [`ThresholdWindows::One`], pixels. Wider ones put a small marker's
-/// outline further from its edge than OpenCV's narrow window does (over a pixel at 16 px).
+/// The window kept by [`ThresholdWindows::One`], pixels: narrow, because wider ones start a
+/// small marker's outline further from its edge and its refined corners end further out.
 const ONE_WINDOW_PX: i32 = 7;
 
 /// A detector for one dictionary. Holds OpenCV objects, so each worker thread owns its own.
