@@ -6,7 +6,6 @@ use anyhow::Context;
 use nalgebra::Point3;
 use serde::Serialize;
 use std::path::Path;
-use std::time::Duration;
 use vsgraphs_sim::scenarios::Scenario;
 use vsgraphs_sim::sequence::render_frame;
 use vsgraphs_vision::aruco::{CornerRefinement, MarkerDetector, ThresholdWindows};
@@ -109,11 +108,6 @@ pub struct ImagesRun {
     pub cpu_ms: Spread,
 }
 
-fn thread_cpu() -> Duration {
-    let t = rustix::time::clock_gettime(rustix::time::ClockId::ThreadCPUTime);
-    Duration::new(t.tv_sec as u64, t.tv_nsec as u32)
-}
-
 /// Runs the detector over every `options.every`-th frame of every walk of `scenario`.
 pub fn run(
     scenario: &Scenario,
@@ -150,9 +144,9 @@ pub fn run(
             let frame = render_frame(&renderer, walk, i);
             let grey = frame.grey();
             let image = GreyImage::from_pixels(camera.width, camera.height, &grey)?;
-            let started = thread_cpu();
+            let started = vsgraphs_slam::cpu_time::thread();
             let detections = detector.detect(&image)?;
-            let ms = (thread_cpu() - started).as_secs_f64() * 1e3;
+            let ms = (vsgraphs_slam::cpu_time::thread() - started).as_secs_f64() * 1e3;
             cpu.push(ms);
             let in_view = renderer.visible_markers(&building, &pose, 1e3, options.max_angle_deg);
             // Markers seen obliquely may be found too; a detection is false when its id is not
@@ -249,9 +243,9 @@ pub fn run_images(
     let (mut cpu, mut detections) = (Vec::new(), 0);
     for path in &paths {
         let grey = GreyImage::read(path).with_context(|| format!("reading {}", path.display()))?;
-        let started = thread_cpu();
+        let started = vsgraphs_slam::cpu_time::thread();
         detections += detector.detect(&grey)?.len();
-        cpu.push((thread_cpu() - started).as_secs_f64() * 1e3);
+        cpu.push((vsgraphs_slam::cpu_time::thread() - started).as_secs_f64() * 1e3);
     }
     Ok(ImagesRun {
         frames: paths.len(),

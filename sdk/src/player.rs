@@ -55,6 +55,10 @@ pub struct PlayOptions {
     /// difference between the play rate and the recording's), but the stamps no longer match
     /// the recording's ground truth.
     pub stamp_on_send: bool,
+    /// Read and encode every frame of the sequence before the first is sent, so that the
+    /// player's decoding does not compete for the cores with a server on the same machine
+    /// (memory: the sequence's encoded size, about 0.4 MB a VGA frame).
+    pub preload: bool,
 }
 
 impl Default for PlayOptions {
@@ -66,6 +70,7 @@ impl Default for PlayOptions {
             limit: None,
             original_timestamps: false,
             stamp_on_send: false,
+            preload: false,
         }
     }
 }
@@ -81,6 +86,10 @@ pub struct PlaySummary {
     /// Size of the depth images on the wire against raw 16-bit, summed over frames.
     pub depth_bytes: u64,
     pub depth_raw_bytes: u64,
+    /// A frame's stamp on the wire minus its stamp in the recording, ns (the same for every
+    /// frame of the first lap): moves the recording's ground truth onto the stream's clock.
+    /// None when each frame was stamped as it was sent.
+    pub recording_to_stream_ns: Option<i128>,
 }
 
 impl PlaySummary {
@@ -121,6 +130,7 @@ pub async fn play(
     let registration = dataset.depth_registration;
     let loops = options.loops;
     let limit = total;
+    let preload = options.preload;
     let period_ns = frames
         .windows(2)
         .map(|w| w[1].timestamp_ns.saturating_sub(w[0].timestamp_ns))
@@ -132,15 +142,27 @@ pub async fn play(
         .spawn(move || {
             let mut sent = 0u64;
             let mut loop_offset = 0u64;
+            // Each frame of a lap loaded once and kept, when preloading.
+            let mut kept: Vec<Result<(ColourImage, DepthImage, u64), String>> = Vec::new();
+            if preload {
+                let first_lap = limit.map_or(frames.len(), |l| frames.len().min(l as usize));
+                kept = frames[..first_lap]
+                    .iter()
+                    .map(|files| load_frame(files, codec, registration))
+                    .collect();
+            }
             for lap in 0.. {
                 if loops != 0 && lap >= loops {
                     break;
                 }
-                for files in &frames {
+                for (i, files) in frames.iter().enumerate() {
                     if limit.is_some_and(|l| sent >= l) {
                         return;
                     }
-                    let result = load_frame(files, codec, registration);
+                    let result = match kept.get(i) {
+                        Some(loaded) => loaded.clone(),
+                        None => load_frame(files, codec, registration),
+                    };
                     let timestamp_ns = loop_offset + files.timestamp_ns - frames[0].timestamp_ns;
                     let loaded = Loaded {
                         timestamp_ns,
@@ -160,16 +182,22 @@ pub async fn play(
         })
         .expect("a thread can be spawned");
 
-    let start = Instant::now();
-    let stamp_base = if options.original_timestamps {
-        dataset.frames[0].timestamp_ns
-    } else {
-        now_ns()
-    };
     let mut summary = PlaySummary::default();
     let mut attempted = 0u64;
     let mut last_stamp = 0u64;
+    // The clock starts with the first frame loaded (after the preload, if any).
+    let mut clock: Option<(Instant, u64)> = None;
     while let Some(loaded) = receiver.recv().await {
+        let (start, stamp_base) = *clock.get_or_insert_with(|| {
+            let stamp_base = if options.original_timestamps {
+                dataset.frames[0].timestamp_ns
+            } else {
+                now_ns()
+            };
+            summary.recording_to_stream_ns = (!options.stamp_on_send)
+                .then(|| i128::from(stamp_base) - i128::from(dataset.frames[0].timestamp_ns));
+            (Instant::now(), stamp_base)
+        });
         let due = match options.rate {
             Rate::RealTime => Some(Duration::from_nanos(loaded.timestamp_ns)),
             Rate::Hz(hz) => Some(Duration::from_secs_f64(attempted as f64 / hz)),
@@ -208,7 +236,7 @@ pub async fn play(
         }
         progress(attempted, total);
     }
-    summary.elapsed = start.elapsed();
+    summary.elapsed = clock.map_or(Duration::ZERO, |(start, _)| start.elapsed());
     let _ = loader.join();
     Ok(summary)
 }

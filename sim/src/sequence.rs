@@ -15,6 +15,8 @@ use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicUsize, Ordering};
 use std::sync::Mutex;
+use vsgraphs_proto::encode::{self, EncodeError};
+use vsgraphs_proto::PixelFormat;
 
 /// TUM's depth units per metre.
 pub const TUM_DEPTH_SCALE: f64 = 5000.0;
@@ -28,6 +30,8 @@ pub enum SequenceError {
     },
     #[error(transparent)]
     Walk(#[from] crate::walk::WalkError),
+    #[error("encoding a colour image: {0}")]
+    Encode(#[from] EncodeError),
     #[error(transparent)]
     Plan(#[from] crate::PlanError),
 }
@@ -53,6 +57,10 @@ pub struct WriteOptions {
     pub threads: usize,
     /// Time of the first frame, seconds (TUM stamps are seconds).
     pub start_time_s: f64,
+    /// Colour as JPEG of this quality (1–100), as robots send it, rather than lossless PNG:
+    /// the bytes a robot's frames carry, so a replay costs the server what a robot's stream
+    /// does, and a tenth of the disk.
+    pub jpeg_quality: Option<u8>,
 }
 
 impl Default for WriteOptions {
@@ -62,6 +70,7 @@ impl Default for WriteOptions {
             seed: 1,
             threads: 0,
             start_time_s: 0.0,
+            jpeg_quality: None,
         }
     }
 }
@@ -140,6 +149,14 @@ pub fn write(
     Ok(written)
 }
 
+/// The colour images' file type.
+fn colour_extension(options: &WriteOptions) -> &'static str {
+    match options.jpeg_quality {
+        None => "png",
+        Some(_) => "jpg",
+    }
+}
+
 /// TUM's stamp text: seconds with six decimals, also the image file name.
 fn stamp(seconds: f64) -> String {
     format!("{seconds:.6}")
@@ -173,8 +190,9 @@ fn write_robot(
         .collect();
     let mut rgb_list = String::from("# colour images\n# timestamp filename\n");
     let mut depth_list = String::from("# depth maps\n# timestamp filename\n");
+    let colour_ext = colour_extension(options);
     for s in &stamps {
-        let _ = writeln!(rgb_list, "{s} rgb/{s}.png");
+        let _ = writeln!(rgb_list, "{s} rgb/{s}.{colour_ext}");
         let _ = writeln!(depth_list, "{s} depth/{s}.png");
     }
     // The same `{:.6}` seconds as the image names, so every pose names its frame exactly.
@@ -194,7 +212,7 @@ fn write_robot(
                 if i >= frames || failure.lock().map_or(true, |f| f.is_some()) {
                     break;
                 }
-                if let Err(e) = write_frame(renderer, walk, i, dir, &stamps[i]) {
+                if let Err(e) = write_frame(renderer, walk, i, dir, &stamps[i], options) {
                     *failure.lock().unwrap_or_else(|p| p.into_inner()) = Some(e);
                     break;
                 }
@@ -242,16 +260,31 @@ fn write_frame(
     i: usize,
     dir: &Path,
     stamp: &str,
+    options: &WriteOptions,
 ) -> Result<(), SequenceError> {
     let frame = render_frame(renderer, walk, i);
     let io = |path: PathBuf, result: std::io::Result<()>| {
         result.map_err(|source| SequenceError::Write { path, source })
     };
-    let rgb = dir.join("rgb").join(format!("{stamp}.png"));
-    io(
-        rgb.clone(),
-        images::write_rgb(&rgb, frame.width, frame.height, &frame.rgb),
-    )?;
+    let rgb = dir
+        .join("rgb")
+        .join(format!("{stamp}.{}", colour_extension(options)));
+    match options.jpeg_quality {
+        None => io(
+            rgb.clone(),
+            images::write_rgb(&rgb, frame.width, frame.height, &frame.rgb),
+        )?,
+        Some(quality) => {
+            let jpeg = encode::colour_jpeg(
+                &frame.rgb,
+                frame.width,
+                frame.height,
+                PixelFormat::Rgb8,
+                quality,
+            )?;
+            io(rgb.clone(), std::fs::write(&rgb, jpeg.data))?;
+        }
+    }
     let depth = dir.join("depth").join(format!("{stamp}.png"));
     io(
         depth.clone(),

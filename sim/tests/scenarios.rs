@@ -8,6 +8,7 @@ use vsgraphs_sim::scenarios::{Scenario, NAMES};
 use vsgraphs_sim::sequence::{self, WriteOptions, TUM_DEPTH_SCALE};
 use vsgraphs_sim::walk::{walk, Motion, Route, Tour, Visit, WalkError};
 use vsgraphs_sim::{Building, Renderer};
+use vsgraphs_vision::image::GreyImage;
 
 /// Distance from `p` to the nearest wall it could walk into: inside a space, its distance to
 /// that space's sides, except sides it may cross through a door near `p`.
@@ -206,6 +207,64 @@ fn every_scenario_writes_a_complete_sequence() {
             .unwrap();
             assert_eq!(camera["depth_scale"], TUM_DEPTH_SCALE);
         }
+    }
+}
+
+/// Colour as JPEG (what robots send): listed under its own name, close to the lossless image,
+/// a fraction of its size; depth as without it.
+#[test]
+fn colour_can_be_written_as_jpeg() {
+    let dir = tempfile::tempdir().unwrap();
+    let scenario = Scenario::builtin("seq01").unwrap();
+    let write = |name: &str, jpeg_quality| {
+        let out = dir.path().join(name);
+        let options = WriteOptions {
+            limit: Some(2),
+            jpeg_quality,
+            ..WriteOptions::default()
+        };
+        sequence::write(&scenario, &out, &options, |_, _| {}).unwrap();
+        out
+    };
+    let (png, jpeg) = (write("png", None), write("jpeg", Some(90)));
+    let listed = |out: &std::path::Path, list: &str| -> Vec<String> {
+        std::fs::read_to_string(out.join(list))
+            .unwrap()
+            .lines()
+            .filter(|l| !l.starts_with('#'))
+            .map(|l| l.split_whitespace().nth(1).unwrap().to_owned())
+            .collect()
+    };
+    let (png_colour, jpeg_colour) = (listed(&png, "rgb.txt"), listed(&jpeg, "rgb.txt"));
+    assert_eq!(jpeg_colour.len(), 2);
+    for (p, j) in png_colour.iter().zip(&jpeg_colour) {
+        assert_eq!(p.strip_suffix(".png"), j.strip_suffix(".jpg"), "{p} {j}");
+        let size = |path: std::path::PathBuf| std::fs::metadata(path).unwrap().len();
+        let (png_bytes, jpeg_bytes) = (size(png.join(p)), size(jpeg.join(j)));
+        assert!(
+            jpeg_bytes * 3 < png_bytes,
+            "{jpeg_bytes} vs {png_bytes} bytes"
+        );
+        let a = GreyImage::read(&png.join(p)).unwrap();
+        let b = GreyImage::read(&jpeg.join(j)).unwrap();
+        assert_eq!((b.width(), b.height()), (640, 480));
+        let difference = a
+            .pixels()
+            .iter()
+            .zip(b.pixels())
+            .map(|(&x, &y)| f64::from(x.abs_diff(y)))
+            .sum::<f64>()
+            / a.pixels().len() as f64;
+        assert!(difference < 2.0, "mean grey difference {difference}");
+    }
+    for (p, j) in listed(&png, "depth.txt")
+        .iter()
+        .zip(&listed(&jpeg, "depth.txt"))
+    {
+        assert_eq!(
+            std::fs::read(png.join(p)).unwrap(),
+            std::fs::read(jpeg.join(j)).unwrap()
+        );
     }
 }
 

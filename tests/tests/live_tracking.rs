@@ -80,13 +80,18 @@ async fn live_tracking_matches_the_offline_run() {
     let robot = Robot::connect(config).await.unwrap();
     // Slow enough that the server never has to drop a frame (a dropped frame would change the
     // motion model's prediction, and so the trajectory).
+    // Preloaded: the frames sent from memory must be the frames read one by one.
     let options = PlayOptions {
         rate: Rate::Hz(8.0),
         depth_codec: DepthEncoding::Rvl,
         limit: Some(FRAMES),
+        preload: true,
         ..PlayOptions::default()
     };
-    play(&robot, &dataset, &options, |_, _| {}).await.unwrap();
+    let played = play(&robot, &dataset, &options, |_, _| {}).await.unwrap();
+    let shift_ns = played
+        .recording_to_stream_ns
+        .expect("frames follow the recording's clock");
     let status = wait_for("all frames processed", Duration::from_secs(120), || async {
         let status = test.client.robot("kinect").await.ok()?;
         (status.frames.processed + status.frames.dropped + status.frames.rejected == FRAMES as u64
@@ -113,6 +118,11 @@ async fn live_tracking_matches_the_offline_run() {
     let mut worst: f64 = 0.0;
     for (a, b) in live.iter().zip(&offline) {
         assert_eq!(a.map, b.map);
+        // The shift the player reports takes each pose back to its frame in the recording.
+        assert_eq!(
+            i128::from(a.timestamp_ns) - shift_ns,
+            i128::from(b.timestamp_ns)
+        );
         worst = worst.max(largest_difference(
             &a.world_from_camera,
             &b.world_from_camera,

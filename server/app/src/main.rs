@@ -274,6 +274,18 @@ fn print_offline(s: &vsgraphs_pipeline::offline::OfflineSummary) {
         median(&front_end),
         quantile(&front_end, 0.9)
     );
+    // Means add up where medians do not: the stages' share of the server's CPU per frame.
+    let mean = |v: &[f64]| v.iter().sum::<f64>() / v.len().max(1) as f64;
+    println!(
+        "mean ms per frame: decode {:.2}, markers {:.2}, features {:.2}, tracking {:.2}, mapping {:.2}; CPU per frame: the pipeline's thread {:.2}, the server's, every thread: {:.2} ms",
+        mean(&s.decode_ms),
+        mean(&s.detection_ms),
+        mean(&s.features_ms),
+        mean(&s.tracking_ms),
+        mean(&s.mapping_ms),
+        s.worker_cpu.as_secs_f64() * 1e3 / s.frames.max(1) as f64,
+        s.server_cpu.as_secs_f64() * 1e3 / s.frames.max(1) as f64,
+    );
     // What a live stream must absorb: at 30 Hz a frame has 33.3 ms on average, and the
     // ingest queue takes up the slower ones.
     println!(

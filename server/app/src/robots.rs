@@ -64,9 +64,11 @@ pub struct StageHistograms {
 
 impl StageHistograms {
     fn new() -> Self {
-        // 0.5 ms to about 4 s in factors of two: a stage of a frame at 30 Hz is a few
-        // milliseconds, a frame that waited behind a merge or a stalled robot seconds.
-        let histogram = || Histogram::new(exponential_buckets(0.0005, 2.0, 14));
+        // 0.5 ms to about 8 s in factors of √2: a stage of a frame at 30 Hz is a few
+        // milliseconds, a frame that waited behind a merge or a stalled robot seconds; √2
+        // places a quantile read from the buckets within a fifth of its value.
+        let histogram =
+            || Histogram::new(exponential_buckets(0.0005, std::f64::consts::SQRT_2, 28));
         Self {
             latency: histogram(),
             processing: histogram(),

@@ -44,6 +44,14 @@ pub struct OfflineSummary {
     pub tracking_cpu_ms: Vec<f64>,
     pub mapping_ms: Vec<f64>,
     pub local_ba_ms: Vec<f64>,
+    /// CPU time of every thread of the process while the frames ran (tracking, mapping, the
+    /// S-Graph, loops and merges, to the last map's flush), less reading and encoding the
+    /// frames (a robot's work): what the server spent on the run.
+    pub server_cpu: Duration,
+    /// Of it, the CPU time of the thread that ran the frames through the pipeline (decoding,
+    /// markers, features, tracking, and mapping where it is inline); the rest is other threads'
+    /// (the map's writer, the S-Graph, loops, merges, helpers of the local BA).
+    pub worker_cpu: Duration,
     /// Each tracked frame's times with the wall clock at which its processing ended, to set
     /// them beside what the server did meanwhile (a merge on another thread).
     pub tracked_times: Vec<FrameTimes>,
@@ -202,7 +210,14 @@ pub fn run_frames(
     let mut anchors = Vec::new();
     let mut previous: Option<FrameHeader> = None;
     let mut first_ns = None;
-    for (sequence, frame) in frames.enumerate() {
+    let cpu_started = vsgraphs_slam::cpu_time::process();
+    let mut reading_cpu = Duration::ZERO;
+    let mut frames = frames.enumerate();
+    loop {
+        let reading_started = vsgraphs_slam::cpu_time::thread();
+        let Some((sequence, frame)) = frames.next() else {
+            break;
+        };
         let sequence = sequence as u64;
         summary.frames += 1;
         let OfflineFrame {
@@ -213,6 +228,7 @@ pub fn run_frames(
         } = match frame {
             Ok(frame) => frame,
             Err(message) => {
+                reading_cpu += vsgraphs_slam::cpu_time::thread().saturating_sub(reading_started);
                 summary.skipped.push((sequence, message));
                 continue;
             }
@@ -237,7 +253,11 @@ pub fn run_frames(
             imu: vec![],
         }
         .encode_to_vec();
-        let processed = match processor.process(OFFLINE_ROBOT, &bytes, previous.as_ref()) {
+        reading_cpu += vsgraphs_slam::cpu_time::thread().saturating_sub(reading_started);
+        let worker_started = vsgraphs_slam::cpu_time::thread();
+        let processed = processor.process(OFFLINE_ROBOT, &bytes, previous.as_ref());
+        summary.worker_cpu += vsgraphs_slam::cpu_time::thread().saturating_sub(worker_started);
+        let processed = match processed {
             Ok(processed) => processed,
             Err(rejection) => {
                 summary.skipped.push((
@@ -306,6 +326,9 @@ pub fn run_frames(
         progress(summary.frames, total);
     }
     processor.flush_tracking()?;
+    summary.server_cpu = vsgraphs_slam::cpu_time::process()
+        .saturating_sub(cpu_started)
+        .saturating_sub(reading_cpu);
     summary.map_views = processor
         .map_views()
         .into_iter()

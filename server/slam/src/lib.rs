@@ -14,6 +14,7 @@
 
 pub mod archive;
 pub mod atlas;
+pub mod cpu_time;
 pub mod error;
 pub mod frame;
 pub mod global;

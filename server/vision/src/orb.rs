@@ -247,54 +247,47 @@ impl OrbExtractor {
     }
 
     /// FAST corners of one level, cell by cell: a cell keeps its corners that pass the strict
-    /// threshold, or, when it has none, those that pass the lenient one. FAST runs once over the
-    /// level at the lenient threshold; a corner's score is the highest threshold it passes, and
-    /// non-maximum suppression only compares corners' scores, so this keeps exactly what
-    /// searching each cell twice would.
+    /// threshold, or, when it has none, those that pass the lenient one. A corner's score is the
+    /// highest threshold it passes and non-maximum suppression only compares corners' scores,
+    /// so a corner that passes the strict threshold is found the same whether FAST runs at the
+    /// strict or the lenient one. FAST therefore runs once over the level at the strict
+    /// threshold, which is cheaper (fewer pixels pass its first test), and again at the lenient
+    /// one only on the cells that found nothing, each with a margin wide enough that its border
+    /// pixels see the same neighbours as in a search of the whole level.
     fn corners_of_level(&self, image: &Mat) -> Result<Vec<Corner>, CvError> {
-        let (width, height) = (image.cols(), image.rows());
-        let (x0, y0, x1, y1) = (BORDER, BORDER, width - BORDER, height - BORDER);
-        if x1 <= x0 + 2 * FAST_MARGIN || y1 <= y0 + 2 * FAST_MARGIN {
+        let Some(grid) = CellGrid::of_level(image.cols(), image.rows()) else {
             return Ok(Vec::new());
-        }
-        let columns = ((x1 - x0) / CELL).max(1);
-        let rows = ((y1 - y0) / CELL).max(1);
-        let (cell_w, cell_h) = (
-            ((x1 - x0) as f64 / f64::from(columns)).ceil() as i32,
-            ((y1 - y0) as f64 / f64::from(rows)).ceil() as i32,
-        );
-        let region = Rect::new(
-            x0 - FAST_MARGIN,
-            y0 - FAST_MARGIN,
-            x1 - x0 + 2 * FAST_MARGIN,
-            y1 - y0 + 2 * FAST_MARGIN,
-        );
-        let roi = Mat::roi(image, region)?;
-        let mut found = Vector::<KeyPoint>::new();
-        opencv::features2d::fast(&roi, &mut found, self.params.fast_min_threshold, true)?;
-        let mut cells: Vec<Vec<Corner>> = vec![Vec::new(); (columns * rows) as usize];
-        for k in found.iter() {
-            let (x, y) = (k.pt().x as i32 + region.x, k.pt().y as i32 + region.y);
-            if (x0..x1).contains(&x) && (y0..y1).contains(&y) {
-                let cell = ((y - y0) / cell_h).min(rows - 1) * columns
-                    + ((x - x0) / cell_w).min(columns - 1);
-                cells[cell as usize].push(Corner {
-                    x,
-                    y,
-                    response: k.response(),
-                });
+        };
+        let mut cells: Vec<Vec<Corner>> = vec![Vec::new(); grid.len()];
+        let whole = grid.searched();
+        for corner in fast(image, whole, self.params.fast_threshold)? {
+            if let Some(cell) = grid.cell_of(corner.x, corner.y) {
+                cells[cell].push(corner);
             }
         }
-        let strict = self.params.fast_threshold as f32;
-        let mut corners = Vec::with_capacity(found.len());
-        for cell in cells {
-            if cell.iter().any(|c| c.response >= strict) {
-                corners.extend(cell.into_iter().filter(|c| c.response >= strict));
-            } else {
-                corners.extend(cell);
+        for (index, cell) in cells.iter_mut().enumerate() {
+            if !cell.is_empty() {
+                continue;
             }
+            let area = grid.cell(index);
+            if area.width <= 0 || area.height <= 0 {
+                continue;
+            }
+            // One pixel more than FAST's own margin, so that the cell's border pixels are
+            // compared with their scored neighbours in non-maximum suppression.
+            let margin = FAST_MARGIN + 1;
+            let x0 = (area.x - margin).max(whole.x);
+            let y0 = (area.y - margin).max(whole.y);
+            let x1 = (area.x + area.width + margin).min(whole.x + whole.width);
+            let y1 = (area.y + area.height + margin).min(whole.y + whole.height);
+            let search = Rect::new(x0, y0, x1 - x0, y1 - y0);
+            cell.extend(
+                fast(image, search, self.params.fast_min_threshold)?
+                    .into_iter()
+                    .filter(|c| area.contains(opencv::core::Point::new(c.x, c.y))),
+            );
         }
-        Ok(corners)
+        Ok(cells.into_iter().flatten().collect())
     }
 
     /// Orientation of the patch around (x, y) by its intensity centroid, degrees in [0, 360).
@@ -338,6 +331,99 @@ fn level_size(size: Size, scale: f64) -> Size {
 /// coarse-level keypoints by up to 1.3 px toward the top-left corner, a bias between levels.
 fn level_to_base(x: i32, scale: f64) -> f32 {
     ((f64::from(x) + 0.5) * scale - 0.5) as f32
+}
+
+/// FAST corners (with non-maximum suppression) of `region` of `image`, in the image's pixels.
+/// FAST leaves `FAST_MARGIN` pixels of the region's border unsearched.
+fn fast(image: &Mat, region: Rect, threshold: i32) -> Result<Vec<Corner>, CvError> {
+    let roi = Mat::roi(image, region)?;
+    let mut found = Vector::<KeyPoint>::new();
+    opencv::features2d::fast(&roi, &mut found, threshold, true)?;
+    Ok(found
+        .iter()
+        .map(|k| Corner {
+            x: k.pt().x as i32 + region.x,
+            y: k.pt().y as i32 + region.y,
+            response: k.response(),
+        })
+        .collect())
+}
+
+/// The FAST search cells of a level: `CELL`-pixel squares (stretched to fill it) over the part
+/// of the level at least `BORDER` pixels from its edges.
+struct CellGrid {
+    x0: i32,
+    y0: i32,
+    x1: i32,
+    y1: i32,
+    columns: i32,
+    rows: i32,
+    cell_w: i32,
+    cell_h: i32,
+}
+
+impl CellGrid {
+    /// None when the level is too small to search.
+    fn of_level(width: i32, height: i32) -> Option<Self> {
+        let (x0, y0, x1, y1) = (BORDER, BORDER, width - BORDER, height - BORDER);
+        if x1 <= x0 + 2 * FAST_MARGIN || y1 <= y0 + 2 * FAST_MARGIN {
+            return None;
+        }
+        let columns = ((x1 - x0) / CELL).max(1);
+        let rows = ((y1 - y0) / CELL).max(1);
+        Some(Self {
+            x0,
+            y0,
+            x1,
+            y1,
+            columns,
+            rows,
+            cell_w: ((x1 - x0) as f64 / f64::from(columns)).ceil() as i32,
+            cell_h: ((y1 - y0) as f64 / f64::from(rows)).ceil() as i32,
+        })
+    }
+
+    fn len(&self) -> usize {
+        (self.columns * self.rows) as usize
+    }
+
+    /// What FAST runs on so that it tests every pixel of the cells.
+    fn searched(&self) -> Rect {
+        Rect::new(
+            self.x0 - FAST_MARGIN,
+            self.y0 - FAST_MARGIN,
+            self.x1 - self.x0 + 2 * FAST_MARGIN,
+            self.y1 - self.y0 + 2 * FAST_MARGIN,
+        )
+    }
+
+    /// The cell holding pixel (x, y), if any.
+    fn cell_of(&self, x: i32, y: i32) -> Option<usize> {
+        if !((self.x0..self.x1).contains(&x) && (self.y0..self.y1).contains(&y)) {
+            return None;
+        }
+        let row = ((y - self.y0) / self.cell_h).min(self.rows - 1);
+        let column = ((x - self.x0) / self.cell_w).min(self.columns - 1);
+        Some((row * self.columns + column) as usize)
+    }
+
+    /// The pixels of cell `index` (the last row and column reach the searched area's end).
+    fn cell(&self, index: usize) -> Rect {
+        let (row, column) = (index as i32 / self.columns, index as i32 % self.columns);
+        let x = self.x0 + column * self.cell_w;
+        let y = self.y0 + row * self.cell_h;
+        let x_end = if column == self.columns - 1 {
+            self.x1
+        } else {
+            (x + self.cell_w).min(self.x1)
+        };
+        let y_end = if row == self.rows - 1 {
+            self.y1
+        } else {
+            (y + self.cell_h).min(self.y1)
+        };
+        Rect::new(x, y, x_end - x, y_end - y)
+    }
 }
 
 /// A FAST corner in its level's pixels.
@@ -457,6 +543,98 @@ fn distribute(corners: Vec<Corner>, wanted: usize, size: &Size) -> Vec<Corner> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// The search as it was first written, kept as the reference: FAST once over the level at
+    /// the lenient threshold, each cell then keeping its strict corners or, without any, all.
+    /// Also returns how many cells fell back to the lenient threshold.
+    fn corners_searched_once(
+        image: &Mat,
+        strict: i32,
+        lenient: i32,
+    ) -> (Vec<(i32, i32, f32)>, usize) {
+        let grid = CellGrid::of_level(image.cols(), image.rows()).unwrap();
+        let mut cells: Vec<Vec<Corner>> = vec![Vec::new(); grid.len()];
+        for corner in fast(image, grid.searched(), lenient).unwrap() {
+            if let Some(cell) = grid.cell_of(corner.x, corner.y) {
+                cells[cell].push(corner);
+            }
+        }
+        let mut fallbacks = 0;
+        let mut kept = Vec::new();
+        for cell in cells {
+            if cell.iter().any(|c| c.response >= strict as f32) {
+                kept.extend(cell.into_iter().filter(|c| c.response >= strict as f32));
+            } else {
+                fallbacks += usize::from(!cell.is_empty());
+                kept.extend(cell);
+            }
+        }
+        (
+            kept.iter().map(|c| (c.x, c.y, c.response)).collect(),
+            fallbacks,
+        )
+    }
+
+    /// Searching strictly everywhere and leniently only where a cell found nothing keeps the
+    /// same corners, in the same order, as one lenient search of the whole level, on real
+    /// frames at every pyramid scale (where plain walls leave cells without a strict corner).
+    #[test]
+    fn strict_then_lenient_cells_find_what_one_lenient_search_finds() {
+        let data = std::env::var_os("VSGRAPHS_TEST_DATA")
+            .map(std::path::PathBuf::from)
+            .unwrap_or_else(|| {
+                std::path::PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../../shared/data")
+            });
+        if !data.join("7scenes-a").is_dir() {
+            eprintln!(
+                "SKIPPED: no test data at {} (set VSGRAPHS_TEST_DATA)",
+                data.display()
+            );
+            return;
+        }
+        let extractor = OrbExtractor::new(OrbParams::default()).unwrap();
+        let (strict, lenient) = (
+            extractor.params.fast_threshold,
+            extractor.params.fast_min_threshold,
+        );
+        let mut fallbacks = 0;
+        for frame in [0, 150, 300] {
+            let path = data.join(format!("7scenes-a/frame-{frame:06}.color.jpg"));
+            let grey = GreyImage::read(&path).unwrap();
+            for &scale in &extractor.scales {
+                let mut level = Mat::default();
+                imgproc::resize(
+                    grey.mat(),
+                    &mut level,
+                    level_size(grey.mat().size().unwrap(), scale),
+                    0.0,
+                    0.0,
+                    imgproc::INTER_LINEAR,
+                )
+                .unwrap();
+                let (expected, fell_back) = corners_searched_once(&level, strict, lenient);
+                fallbacks += fell_back;
+                let found: Vec<(i32, i32, f32)> = extractor
+                    .corners_of_level(&level)
+                    .unwrap()
+                    .iter()
+                    .map(|c| (c.x, c.y, c.response))
+                    .collect();
+                let first_difference = found.iter().zip(&expected).position(|(a, b)| a != b);
+                assert!(
+                    found == expected,
+                    "frame {frame}, scale {scale}: {} corners against {}, first difference at {:?}",
+                    found.len(),
+                    expected.len(),
+                    first_difference
+                );
+            }
+        }
+        assert!(
+            fallbacks > 20,
+            "only {fallbacks} cells used the lenient threshold"
+        );
+    }
 
     #[test]
     fn the_budget_is_shared_over_levels_and_adds_up() {

@@ -48,6 +48,10 @@ enum Command {
         /// Motion blur: renders averaged per frame (1 = none).
         #[arg(long)]
         blur: Option<u32>,
+        /// Colour as JPEG of this quality (1–100; robots send 90), as a robot's frames carry it,
+        /// rather than lossless PNG.
+        #[arg(long, value_parser = clap::value_parser!(u8).range(1..=100))]
+        jpeg_quality: Option<u8>,
     },
 }
 
@@ -94,6 +98,7 @@ fn main() -> anyhow::Result<()> {
             seed,
             threads,
             blur,
+            jpeg_quality,
         } => {
             let mut scenario = Scenario::load(&name)?;
             if let Some(samples) = blur {
@@ -108,6 +113,7 @@ fn main() -> anyhow::Result<()> {
                 limit,
                 seed,
                 threads,
+                jpeg_quality,
                 ..WriteOptions::default()
             };
             let start = std::time::Instant::now();

@@ -469,7 +469,7 @@ impl Tracker {
             times,
         };
         let tracking_started = Instant::now();
-        let tracking_cpu_started = thread_cpu_time();
+        let tracking_cpu_started = crate::cpu_time::thread();
         let mut active = self.maps.last().cloned();
         let tracked = match self.state {
             TrackingState::Initialising => {
@@ -540,7 +540,7 @@ impl Tracker {
             }
         };
         times.tracking = tracking_started.elapsed();
-        times.tracking_cpu = thread_cpu_time().saturating_sub(tracking_cpu_started);
+        times.tracking_cpu = crate::cpu_time::thread().saturating_sub(tracking_cpu_started);
         if let (Some((frame, outcome)), Some(map)) = (tracked, active) {
             let mapping_started = Instant::now();
             let keyframe = self.finish_frame(writer, &map, frame, outcome, &rig, &mut result)?;
@@ -882,15 +882,6 @@ impl Tracker {
 
 fn unexpected(reply: &MapReply) -> TrackError {
     TrackError::Writer(format!("unexpected reply {reply:?}"))
-}
-
-/// The calling thread's CPU time so far.
-fn thread_cpu_time() -> Duration {
-    let t = rustix::time::clock_gettime(rustix::time::ClockId::ThreadCPUTime);
-    Duration::new(
-        t.tv_sec.max(0) as u64,
-        t.tv_nsec.clamp(0, 999_999_999) as u32,
-    )
 }
 
 #[cfg(test)]
