@@ -258,7 +258,8 @@ fn centre_distance(target: &MapMarker, source: &MapMarker, target_from_source: &
 ///    tried as the start, and the one most points confirm wins.
 ///
 /// The maps align when [`MIN_SHARED_MARKERS`] markers agree, or one marker is put at one
-/// place and [`MIN_POINT_INLIERS`] points confirm it.
+/// place and [`MIN_POINT_INLIERS`] points confirm it, and the shared markers it puts at one
+/// place outnumber those it puts elsewhere.
 pub fn align_by_markers(target: &Map, source: &Map) -> Result<Alignment, NoAlignment> {
     if let (Some(a), Some(b)) = (&target.rig, &source.rig) {
         if a != b {
@@ -348,6 +349,17 @@ pub fn align_by_markers(target: &Map, source: &Map) -> Result<Alignment, NoAlign
     // the points around one id printed twice confirm it as well as a true one would.
     if let Some(clash) = marker_clash(target, source, &transform) {
         return Err(clash);
+    }
+    // A shared id the transform puts elsewhere says the place is another as loudly as one it
+    // puts in place says it is this one (sites marked from one dictionary share ids, and
+    // rooms look alike): the markers in place must outnumber those elsewhere, so an id
+    // printed twice or misread is outvoted, never decisive.
+    let elsewhere = shared.len() - placed.len();
+    if !placed.is_empty() && elsewhere >= placed.len() {
+        return Err(NoAlignment::Disagree {
+            shared: ids,
+            agreeing: placed.iter().map(|&i| shared[i].0.id).collect(),
+        });
     }
     if agreeing.len() < MIN_SHARED_MARKERS && !confirmed {
         return Err(if shared.len() == 1 {
@@ -1127,6 +1139,49 @@ mod tests {
             },
         );
         map
+    }
+
+    /// Two sites marked from one dictionary share ids, and a place of one can look like a place
+    /// of the other: a marker the points confirm is outvoted by a shared id that the same
+    /// transform puts elsewhere.
+    #[test]
+    fn a_shared_marker_elsewhere_outvotes_one_the_points_confirm() {
+        let beside = Se3::new(
+            UnitQuaternion::from_euler_angles(0.0, 0.1, 0.0),
+            Vector3::new(0.3, 0.0, 0.1),
+        );
+        let mut target = wall_map(&Se3::identity(), &Se3::identity(), 1000);
+        let mut source = wall_map(&beside, &transform(), 1000);
+        assert_eq!(
+            align_by_markers(&target, &source).unwrap().markers,
+            vec![10]
+        );
+        // Marker 11 two metres to one side of marker 10 in the target, two metres to the
+        // other in the source: four metres apart once the maps are aligned on marker 10.
+        let aside = |marker: &MapMarker, x: f64| MapMarker {
+            id: 11,
+            world_from_marker: marker.world_from_marker.compose(&Se3::new(
+                UnitQuaternion::identity(),
+                Vector3::new(x, 0.0, 0.0),
+            )),
+            ..marker.clone()
+        };
+        let eleven = aside(&target.markers[&10], 2.0);
+        target.markers.insert(11, eleven);
+        let eleven = aside(&source.markers[&10], -2.0);
+        source.markers.insert(11, eleven);
+        assert_eq!(
+            align_by_markers(&target, &source),
+            Err(NoAlignment::Disagree {
+                shared: vec![10, 11],
+                agreeing: vec![10]
+            })
+        );
+        // Where the source's 11 is where the target's is, both agree and the maps align.
+        let eleven = aside(&source.markers[&10], 2.0);
+        source.markers.insert(11, eleven);
+        let alignment = align_by_markers(&target, &source).unwrap();
+        assert_eq!(alignment.markers, vec![10, 11]);
     }
 
     #[test]
