@@ -15,7 +15,8 @@
 
 use std::fs;
 use std::path::{Path, PathBuf};
-use thiserror::Error;
+
+pub use crate::error::DatasetError;
 use vsgraphs_proto::{
     encode, png16, CameraModel, ColourEncoding, ColourImage, DepthEncoding, DepthImage,
     DepthRegistration, PixelFormat,
@@ -25,27 +26,6 @@ use vsgraphs_proto::{
 pub const TUM_MAX_DIFFERENCE_NS: u64 = 20_000_000;
 /// Frame period of sequences without timestamps (30 Hz).
 pub const SEVEN_SCENES_PERIOD_NS: u64 = 1_000_000_000 / 30;
-
-#[derive(Debug, Error)]
-pub enum DatasetError {
-    #[error("{0} is neither a TUM RGB-D sequence (rgb.txt, depth.txt) nor a 7-Scenes sequence (frame-000000.color.jpg)")]
-    UnknownLayout(PathBuf),
-    #[error("cannot read {path}: {source}")]
-    Io {
-        path: PathBuf,
-        source: std::io::Error,
-    },
-    #[error("{path}:{line}: {message}")]
-    Parse {
-        path: PathBuf,
-        line: usize,
-        message: String,
-    },
-    #[error("{0} holds no frame with both colour and depth")]
-    Empty(PathBuf),
-    #[error("cannot read the image size from {path}: {message}")]
-    ImageHeader { path: PathBuf, message: String },
-}
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum Layout {
@@ -79,8 +59,13 @@ pub struct Dataset {
     pub warnings: Vec<String>,
 }
 
-/// Opens a sequence, recognising its layout.
+/// Opens a sequence, recognising its layout: a TUM RGB-D or 7-Scenes folder, or a ROS 2 bag
+/// (an `.mcap` file, or a rosbag2 folder holding one) with its topics chosen by
+/// [`crate::rosbag`].
 pub fn open(root: &Path) -> Result<Dataset, DatasetError> {
+    if let Some(bag) = crate::rosbag::bag_file(root) {
+        return open_bag(&bag, &crate::rosbag::BagTopics::default());
+    }
     if root.join("rgb.txt").is_file() && root.join("depth.txt").is_file() {
         open_tum(root)
     } else if root.join("frame-000000.color.jpg").is_file() {
@@ -88,6 +73,25 @@ pub fn open(root: &Path) -> Result<Dataset, DatasetError> {
     } else {
         Err(DatasetError::UnknownLayout(root.to_owned()))
     }
+}
+
+/// Opens a ROS 2 bag's camera frames, extracted once into a folder (see [`crate::rosbag`]).
+pub fn open_bag(bag: &Path, topics: &crate::rosbag::BagTopics) -> Result<Dataset, DatasetError> {
+    let dir = crate::rosbag::frames_dir(bag, topics)?;
+    let extracted = !dir.join("rgb.txt").is_file();
+    if extracted {
+        crate::rosbag::extract(bag, topics, &dir)?;
+    }
+    let mut dataset = open_tum(&dir)?;
+    if extracted {
+        dataset.warnings.push(format!(
+            "{} frames of {} extracted into {}",
+            dataset.frames.len(),
+            bag.display(),
+            dir.display()
+        ));
+    }
+    Ok(dataset)
 }
 
 fn read(path: &Path) -> Result<String, DatasetError> {

@@ -44,6 +44,13 @@ pub fn encode(depth: &[u16], width: u32, height: u32) -> Result<Vec<u8>, Png16Er
     Ok(out)
 }
 
+/// A PNG's width and height from its header, before anything is decoded (to refuse an image
+/// too large to hold before allocating it).
+pub fn dimensions(data: &[u8]) -> Result<(u32, u32), Png16Error> {
+    let reader = png::Decoder::new(data).read_info()?;
+    Ok((reader.info().width, reader.info().height))
+}
+
 /// Decodes a 16-bit greyscale PNG.
 pub fn decode(data: &[u8]) -> Result<Depth16, Png16Error> {
     let mut decoder = png::Decoder::new(data);

@@ -31,6 +31,26 @@ pub fn data_dir(test: &str) -> Option<PathBuf> {
     }
 }
 
+/// A Python with the `rosbags` package (`VSGRAPHS_PYTHON`, else the `target/python` that
+/// `scripts/setup` makes), or None with a message saying the test is skipped.
+pub fn python_with_rosbags(test: &str) -> Option<PathBuf> {
+    let python = std::env::var_os("VSGRAPHS_PYTHON")
+        .map(PathBuf::from)
+        .unwrap_or_else(|| {
+            PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../target/python/bin/python3")
+        });
+    let found = std::process::Command::new(&python)
+        .args(["-c", "import rosbags"])
+        .output()
+        .is_ok_and(|o| o.status.success());
+    if !found {
+        eprintln!(
+            "SKIPPED {test}: no Python with rosbags (run scripts/setup, or set VSGRAPHS_PYTHON)"
+        );
+    }
+    found.then_some(python)
+}
+
 /// A TCP port free on loopback right now.
 pub fn free_port() -> u16 {
     TcpListener::bind("127.0.0.1:0")

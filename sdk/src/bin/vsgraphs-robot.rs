@@ -4,7 +4,7 @@ use anyhow::Context;
 use clap::{Args, Parser, Subcommand, ValueEnum};
 use indicatif::{ProgressBar, ProgressStyle};
 use std::path::PathBuf;
-use vsgraphs_datasets::Trajectory;
+use vsgraphs_datasets::{BagTopics, Trajectory};
 use vsgraphs_sdk::player::{self, PlayOptions, Rate};
 use vsgraphs_sdk::proto::DepthEncoding;
 use vsgraphs_sdk::zenoh_config::ZenohSettings;
@@ -85,10 +85,21 @@ impl StreamArgs {
 
 #[derive(Subcommand)]
 enum Command {
-    /// Play a recorded sequence (TUM RGB-D or 7-Scenes layout).
+    /// Play a recorded sequence: a TUM RGB-D or 7-Scenes folder, or a ROS 2 bag (an .mcap file
+    /// or its rosbag2 folder; the camera's frames are extracted once into a temporary folder).
     Play {
-        /// The sequence's folder.
+        /// The sequence's folder, or the bag.
         dir: PathBuf,
+        /// A bag's colour topic (Image or CompressedImage); chosen by name when not given.
+        #[arg(long)]
+        colour_topic: Option<String>,
+        /// A bag's depth topic (Image 16UC1/32FC1, or CompressedImage compressedDepth png);
+        /// chosen by name when not given, depth aligned to colour first.
+        #[arg(long)]
+        depth_topic: Option<String>,
+        /// A bag's CameraInfo topic; the one beside the colour topic when not given.
+        #[arg(long)]
+        camera_info_topic: Option<String>,
         /// This robot's id (letters, digits, '-', '_', '.').
         #[arg(long, default_value = "robot-1")]
         robot_id: String,
@@ -185,6 +196,9 @@ async fn main() -> anyhow::Result<()> {
     match Cli::parse().command {
         Command::Play {
             dir,
+            colour_topic,
+            depth_topic,
+            camera_info_topic,
             robot_id,
             stream,
             loops,
@@ -193,8 +207,25 @@ async fn main() -> anyhow::Result<()> {
             ground_truth,
             preload,
         } => {
-            let dataset =
-                dataset::open(&dir).with_context(|| format!("opening {}", dir.display()))?;
+            let topics = BagTopics {
+                colour: colour_topic,
+                depth: depth_topic,
+                camera_info: camera_info_topic,
+            };
+            let dataset = match vsgraphs_datasets::rosbag::bag_file(&dir) {
+                Some(bag) => {
+                    eprintln!("reading the camera's frames of {}", bag.display());
+                    dataset::open_bag(&bag, &topics)
+                }
+                None if topics != BagTopics::default() => {
+                    anyhow::bail!(
+                        "{} is not a ROS 2 bag: the topic flags are for bags",
+                        dir.display()
+                    )
+                }
+                None => dataset::open(&dir),
+            }
+            .with_context(|| format!("opening {}", dir.display()))?;
             // Read before streaming: a run whose truth cannot be written is not worth making.
             let truth = match &ground_truth {
                 Some(_) => Some(

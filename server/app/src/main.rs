@@ -72,8 +72,8 @@ enum Command {
         #[arg(long, default_value = "subpixel", value_parser = parse_refinement)]
         refinement: CornerRefinement,
     },
-    /// Run a recorded or simulated sequence (TUM RGB-D or 7-Scenes layout) through the frame
-    /// pipeline without the network, and write the tracked trajectory.
+    /// Run a recorded or simulated sequence (TUM RGB-D or 7-Scenes layout, or a ROS 2 bag)
+    /// through the frame pipeline without the network, and write the tracked trajectory.
     Offline {
         dataset: PathBuf,
         /// TUM trajectory file to write (poses of the map the run ends in, each moved with its

@@ -1,0 +1,109 @@
+//! A ROS 2 bag (MCAP, written by `rosbags` from the 7-Scenes frames as a RealSense driver's
+//! topics: `ros/make_bag.py`) plays like the folder it was made from: the same frames, camera
+//! and depth registration, and through the pipeline the same trajectory.
+
+use std::path::Path;
+use std::process::Command;
+use vsgraphs_datasets::{dataset, load_frame, BagTopics};
+use vsgraphs_proto::{png16, DepthEncoding, DepthRegistration};
+use vsgraphs_server::config::Config;
+use vsgraphs_tests::*;
+
+/// Enough frames for keyframes and a local bundle adjustment.
+const FRAMES: usize = 60;
+/// The bag's stamps start here (see `make_bag.py`); the folder's at 0.
+const BASE_NS: u64 = 1_700_000_000_000_000_000;
+
+#[test]
+fn a_bag_plays_as_the_folder_it_was_made_from() {
+    let test = "a_bag_plays_as_the_folder_it_was_made_from";
+    let (Some(data), Some(python)) = (data_dir(test), python_with_rosbags(test)) else {
+        return;
+    };
+    let folder = dataset::open(&data.join("7scenes-a")).unwrap();
+    let dir = tempfile::tempdir().unwrap();
+    let bag_dir = dir.path().join("kinect_bag");
+    let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("ros/make_bag.py");
+    let status = Command::new(&python)
+        .arg(&script)
+        .arg(data.join("7scenes-a"))
+        .arg(&bag_dir)
+        .arg(FRAMES.to_string())
+        .status()
+        .unwrap();
+    assert!(status.success(), "{} failed", script.display());
+
+    // The rosbag2 folder opens as a dataset; its frames are extracted once.
+    let bag = dataset::open(&bag_dir).unwrap();
+    assert!(
+        bag.warnings.iter().any(|w| w.contains("extracted")),
+        "{:?}",
+        bag.warnings
+    );
+    assert!(
+        dataset::open(&bag_dir).unwrap().warnings.is_empty(),
+        "extracted again"
+    );
+    assert_eq!(bag.frames.len(), FRAMES);
+    assert_eq!(
+        bag.camera, folder.camera,
+        "CameraInfo's camera is the folder's"
+    );
+    assert_eq!(bag.depth_scale, folder.depth_scale);
+    assert_eq!(bag.depth_registration, DepthRegistration::Unregistered);
+    for (b, f) in bag.frames.iter().zip(&folder.frames) {
+        assert_eq!(
+            b.timestamp_ns,
+            BASE_NS + f.timestamp_ns,
+            "the header's stamp"
+        );
+        let (bag_colour, bag_depth, _) =
+            load_frame(b, DepthEncoding::Png16, bag.depth_registration).unwrap();
+        let (colour, depth, _) =
+            load_frame(f, DepthEncoding::Png16, folder.depth_registration).unwrap();
+        assert_eq!(bag_colour, colour, "the JPEG bytes as recorded");
+        assert_eq!(bag_depth.registration, depth.registration);
+        assert_eq!(
+            png16::decode(&bag_depth.data).unwrap(),
+            png16::decode(&depth.data).unwrap(),
+            "the depth values as recorded"
+        );
+    }
+
+    // Through the pipeline: the same poses, stamped with the bag's times.
+    let run = |dataset| {
+        vsgraphs_pipeline::offline::run(&Config::default().pipeline(), dataset, None, |_, _| {})
+            .unwrap()
+            .1
+            .refined
+    };
+    let mut folder_head = folder.clone();
+    folder_head.frames.truncate(FRAMES);
+    let (from_bag, from_folder) = (run(&bag), run(&folder_head));
+    assert_eq!(from_bag.len(), FRAMES, "every frame tracked");
+    assert_eq!(from_bag.len(), from_folder.len());
+    for (b, f) in from_bag.iter().zip(&from_folder) {
+        assert_eq!(b.timestamp_ns, BASE_NS + f.timestamp_ns);
+        assert_eq!(
+            b.world_from_camera, f.world_from_camera,
+            "at {}",
+            f.timestamp_ns
+        );
+    }
+
+    // Topics that are not in the bag are named with the bag's topics.
+    let topics = BagTopics {
+        colour: Some("/camera/color/image_raw".into()),
+        ..BagTopics::default()
+    };
+    let mcap = bag_dir.join("kinect_bag.mcap");
+    let error = dataset::open_bag(&mcap, &topics).unwrap_err().to_string();
+    assert!(
+        error.contains("/camera/color/image_raw is not in the bag")
+            && error.contains("/camera/camera/color/image_raw/compressed"),
+        "{error}"
+    );
+    // The extracted frames live in the temporary folder; this test's bag is gone after it.
+    let frames = vsgraphs_datasets::rosbag::frames_dir(&mcap, &BagTopics::default()).unwrap();
+    std::fs::remove_dir_all(frames).unwrap();
+}
