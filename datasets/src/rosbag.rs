@@ -3,7 +3,8 @@
 //! which the player and the offline run then read like any other.
 //!
 //! - Messages are read in file order with the `mcap` crate (chunks compressed with zstd or lz4
-//!   included), one at a time: memory holds one message, not the bag.
+//!   included), one at a time: memory holds one message, not the bag. The bag is read twice:
+//!   once for its topics (to choose among them and to name them in errors), once for frames.
 //! - Colour: `sensor_msgs/msg/CompressedImage` (JPEG or PNG, written as they came) or `Image`
 //!   (`rgb8`, `bgr8`, `rgba8`, `bgra8`, `mono8`, written as PNG). Depth: `Image` (`16UC1` in
 //!   millimetres, `32FC1` in metres) or `CompressedImage` in `compressedDepth png`, written as
@@ -252,7 +253,8 @@ impl Stream {
         ext: &str,
         bytes: &[u8],
     ) -> Result<(), DatasetError> {
-        let name = format!("{}/{:020}.{ext}", self.dir, stamp_ns);
+        // Numbered in order of arrival: two messages with one stamp stay two files.
+        let name = format!("{}/{:06}-{stamp_ns}.{ext}", self.dir, self.lines.len());
         let path = root.join(&name);
         fs::write(&path, bytes).map_err(io_error(&path))?;
         self.lines.push((stamp_ns, name));
