@@ -26,6 +26,7 @@ pub struct Config {
     pub semantics: SemanticsConfig,
     pub atlas: AtlasConfig,
     pub store: StoreConfig,
+    pub ros: RosConfig,
 }
 
 impl Default for Config {
@@ -39,6 +40,7 @@ impl Default for Config {
             semantics: SemanticsConfig::default(),
             atlas: AtlasConfig::default(),
             store: StoreConfig::default(),
+            ros: RosConfig::default(),
         }
     }
 }
@@ -180,6 +182,98 @@ impl Default for IngestConfig {
     }
 }
 
+/// ROS 2 robots whose camera topics the server reads from zenoh ([`crate::ingest::ros`]).
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct RosConfig {
+    pub robots: Vec<RosRobotConfig>,
+}
+
+/// How a ROS 2 robot's topics are keyed on zenoh.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum RosKeys {
+    /// ROS 2's own Zenoh middleware (`RMW_IMPLEMENTATION=rmw_zenoh_cpp`).
+    RmwZenoh,
+    /// A DDS robot bridged by `zenoh-bridge-ros2dds`.
+    Ros2dds,
+}
+
+/// One ROS 2 robot: its id in vsgraphs and the topics of its colour, depth and colour camera.
+/// Topic names follow `image_transport`: a name ending in `/compressed` or `/compressedDepth`
+/// carries `CompressedImage`, any other image topic `Image`.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct RosRobotConfig {
+    pub id: String,
+    pub keys: RosKeys,
+    /// rmw_zenoh: the robot's `ROS_DOMAIN_ID`.
+    pub domain_id: u32,
+    /// zenoh-bridge-ros2dds: the bridge's `namespace` setting (empty: none).
+    pub namespace: String,
+    pub colour: String,
+    pub depth: String,
+    pub camera_info: String,
+}
+
+impl Default for RosRobotConfig {
+    /// The topics of Intel's RealSense driver (`realsense2_camera` 4.x) with depth aligned to
+    /// colour; the id must be given.
+    fn default() -> Self {
+        Self {
+            id: String::new(),
+            keys: RosKeys::RmwZenoh,
+            domain_id: 0,
+            namespace: String::new(),
+            colour: "/camera/camera/color/image_raw".into(),
+            depth: "/camera/camera/aligned_depth_to_color/image_raw".into(),
+            camera_info: "/camera/camera/color/camera_info".into(),
+        }
+    }
+}
+
+impl RosRobotConfig {
+    pub fn key_format(&self) -> vsgraphs_proto::ros::KeyFormat {
+        match self.keys {
+            RosKeys::RmwZenoh => vsgraphs_proto::ros::KeyFormat::RmwZenoh {
+                domain_id: self.domain_id,
+            },
+            RosKeys::Ros2dds => vsgraphs_proto::ros::KeyFormat::Ros2Dds {
+                namespace: self.namespace.clone(),
+            },
+        }
+    }
+
+    /// What is wrong with the robot's settings, if anything.
+    fn problem(&self) -> Option<String> {
+        if let Err(e) = vsgraphs_proto::keys::validate_robot_id(&self.id) {
+            return Some(format!("id {:?}: {e}", self.id));
+        }
+        for topic in [&self.colour, &self.depth, &self.camera_info] {
+            if let Err(e) = vsgraphs_proto::ros::topics::validate_topic(topic) {
+                return Some(format!("robot {:?}: {e}", self.id));
+            }
+        }
+        if self.colour.ends_with("/compressedDepth") {
+            return Some(format!(
+                "robot {:?}: colour topic {:?} is a depth transport",
+                self.id, self.colour
+            ));
+        }
+        if self.depth.ends_with("/compressed") {
+            return Some(format!(
+                "robot {:?}: depth topic {:?} is image_transport's colour compression; depth \
+                 comes compressed as compressedDepth",
+                self.id, self.depth
+            ));
+        }
+        if let Err(e) = self.key_format().validate() {
+            return Some(format!("robot {:?}: {e}", self.id));
+        }
+        None
+    }
+}
+
 /// The longest wait allowed between a keyframe and its save: an hour of mapping at risk is
 /// already more than a store is for.
 pub const MAX_SAVE_EVERY_S: f64 = 3600.0;
@@ -265,6 +359,25 @@ impl Config {
         }
         if self.ingest.max_frame_bytes < 1024 {
             return invalid("ingest.max_frame_bytes", "must be at least 1024".into());
+        }
+        for (i, robot) in self.ros.robots.iter().enumerate() {
+            if let Some(problem) = robot.problem() {
+                return invalid("ros.robots", problem);
+            }
+            if self.ros.robots[..i].iter().any(|r| r.id == robot.id) {
+                return invalid(
+                    "ros.robots",
+                    format!("robot id {:?} is given twice", robot.id),
+                );
+            }
+        }
+        if !self.ros.robots.is_empty() && !self.ingest.allowed_robots.is_empty() {
+            return invalid(
+                "ros.robots",
+                "ROS 2 robots cannot be combined with [ingest] allowed_robots yet: zenoh's \
+                 access rules name vsgraphs' own keys only"
+                    .into(),
+            );
         }
         self.pipeline().validate()?;
         if let Err(e) = self.zenoh.to_config() {
@@ -358,6 +471,51 @@ mod tests {
             .unwrap_err()
             .to_string()
             .contains("store.save_every_s"));
+        std::fs::write(
+            &path,
+            "[[ros.robots]]\nid = \"bot\"\ncolour = \"camera/rgb\"\n",
+        )
+        .unwrap();
+        let message = Config::load(&path).unwrap_err().to_string();
+        assert!(
+            message.contains("ros.robots") && message.contains("camera/rgb"),
+            "{message}"
+        );
+        std::fs::write(
+            &path,
+            "[[ros.robots]]\nid = \"bot\"\n[[ros.robots]]\nid = \"bot\"\n",
+        )
+        .unwrap();
+        let message = Config::load(&path).unwrap_err().to_string();
+        assert!(message.contains("twice"), "{message}");
+        std::fs::write(&path, "[[ros.robots]]\ncolour = \"/c/image_raw\"\n").unwrap();
+        assert!(Config::load(&path)
+            .unwrap_err()
+            .to_string()
+            .contains("empty"));
+        std::fs::write(
+            &path,
+            "[[ros.robots]]\nid = \"bot\"\nkeys = \"ros2dds\"\nnamespace = \"fleet/*\"\n",
+        )
+        .unwrap();
+        assert!(Config::load(&path)
+            .unwrap_err()
+            .to_string()
+            .contains("fleet/*"));
+        std::fs::write(
+            &path,
+            "[[ros.robots]]\nid = \"bot\"\ndepth = \"/d/image_raw/compressed\"\n",
+        )
+        .unwrap();
+        assert!(Config::load(&path)
+            .unwrap_err()
+            .to_string()
+            .contains("compressedDepth"));
+        // The RealSense driver's topics by default.
+        std::fs::write(&path, "[[ros.robots]]\nid = \"bot\"\ndomain_id = 7\n").unwrap();
+        let ros = Config::load(&path).unwrap().ros;
+        assert_eq!(ros.robots[0].domain_id, 7);
+        assert_eq!(ros.robots[0].colour, "/camera/camera/color/image_raw");
         std::fs::write(&path, "[http]\nlisten = \"127.0.0.1:9000\"\n").unwrap();
         assert_eq!(Config::load(&path).unwrap().http.listen.port(), 9000);
         assert!(matches!(

@@ -3,6 +3,11 @@
 //!
 //! The zenoh callbacks only look up the robot and enqueue bytes, so a slow or hostile robot can
 //! never stall zenoh's threads or another robot. Workers decode and detect (see `pipeline`).
+//! ROS 2 robots' topics ([`ros`]) become frames on a thread of their own and join the same
+//! queues.
+
+mod pairing;
+pub mod ros;
 
 use crate::config::Config;
 use crate::queue::{Arrival, Pushed};
@@ -23,6 +28,7 @@ use zenoh::sample::SampleKind;
 pub struct Ingest {
     _frames: zenoh::pubsub::Subscriber<()>,
     _presence: zenoh::pubsub::Subscriber<()>,
+    ros: Option<ros::RosIngest>,
     workers: Arc<Workers>,
     sweeper: Option<(mpsc::Sender<()>, JoinHandle<()>)>,
 }
@@ -61,6 +67,22 @@ impl Workers {
             }
         }
         Some(entry)
+    }
+
+    /// Queues a frame's bytes for `robot`, unless it is over its rate; a full queue drops one.
+    fn enqueue(&self, robot: &RobotEntry, bytes: Vec<u8>) {
+        robot.record_arrival();
+        if !robot.admit(std::time::Instant::now()) {
+            return;
+        }
+        let arrival = Arrival {
+            bytes,
+            received_ns: now_ns(),
+            dropped_before: 0,
+        };
+        if robot.queue.push(arrival) == Pushed::DroppedOne {
+            robot.record_dropped();
+        }
     }
 
     /// Forgets the robots idle for longer than the configuration allows and waits for their
@@ -126,18 +148,7 @@ impl Ingest {
                         .fetch_add(1, Ordering::Relaxed);
                     return;
                 };
-                robot.record_arrival();
-                if !robot.admit(std::time::Instant::now()) {
-                    return;
-                }
-                let arrival = Arrival {
-                    bytes: sample.payload().to_bytes().into_owned(),
-                    received_ns: now_ns(),
-                    dropped_before: 0,
-                };
-                if robot.queue.push(arrival) == Pushed::DroppedOne {
-                    robot.record_dropped();
-                }
+                frame_workers.enqueue(&robot, sample.payload().to_bytes().into_owned());
             })
             .await?;
         let presence_workers = workers.clone();
@@ -160,6 +171,7 @@ impl Ingest {
                 robot.set_presence(presence);
             })
             .await?;
+        let ros = ros::RosIngest::start(session, &workers, &workers.config.ros.robots).await?;
         let (stop, stopped) = mpsc::channel::<()>();
         let sweeping = workers.clone();
         let period = sweep_period(workers.config.ingest.forget_after_s);
@@ -174,6 +186,7 @@ impl Ingest {
         Ok(Self {
             _frames: frames,
             _presence: presence,
+            ros: Some(ros),
             workers,
             sweeper: Some((stop, sweeper)),
         })
@@ -181,6 +194,10 @@ impl Ingest {
 
     /// Stops accepting frames, lets workers finish what is queued, and joins them.
     pub fn stop(mut self) {
+        // ROS robots' threads hand their last frames to the queues before those close.
+        if let Some(ros) = self.ros.take() {
+            ros.stop();
+        }
         if let Some((stop, sweeper)) = self.sweeper.take() {
             drop(stop);
             let _ = sweeper.join();
