@@ -60,7 +60,7 @@ pub struct Dataset {
 }
 
 /// Opens a sequence, recognising its layout: a TUM RGB-D or 7-Scenes folder, or a ROS 2 bag
-/// (an `.mcap` file, or a rosbag2 folder holding one) with its topics chosen by
+/// (an `.mcap` or `.db3` file, or a rosbag2 folder holding one) with its topics chosen by
 /// [`crate::rosbag`].
 pub fn open(root: &Path) -> Result<Dataset, DatasetError> {
     if let Some(bag) = crate::rosbag::bag_file(root) {
@@ -76,20 +76,28 @@ pub fn open(root: &Path) -> Result<Dataset, DatasetError> {
 }
 
 /// Opens a ROS 2 bag's camera frames, extracted once into a folder (see [`crate::rosbag`]).
+/// The notes say when it was extracted, and how many unreadable messages were skipped.
 pub fn open_bag(bag: &Path, topics: &crate::rosbag::BagTopics) -> Result<Dataset, DatasetError> {
     let dir = crate::rosbag::frames_dir(bag, topics)?;
-    let extracted = !dir.join("rgb.txt").is_file();
-    if extracted {
-        crate::rosbag::extract(bag, topics, &dir)?;
-    }
+    let extracted = if dir.join("rgb.txt").is_file() {
+        None
+    } else {
+        Some(crate::rosbag::extract(bag, topics, &dir)?)
+    };
     let mut dataset = open_tum(&dir)?;
-    if extracted {
+    if let Some(extracted) = extracted {
         dataset.warnings.push(format!(
             "{} frames of {} extracted into {}",
             dataset.frames.len(),
             bag.display(),
             dir.display()
         ));
+        if let Some(first) = &extracted.first_skipped {
+            dataset.warnings.push(format!(
+                "{} unreadable messages skipped; the first: {first}",
+                extracted.skipped
+            ));
+        }
     }
     Ok(dataset)
 }

@@ -1,10 +1,15 @@
-//! ROS 2 bags in MCAP (rosbag2's default storage since Iron) played like folders: the camera's
-//! frames are extracted once into a TUM RGB-D folder (`rgb.txt`, `depth.txt`, `camera.json`),
-//! which the player and the offline run then read like any other.
+//! ROS 2 bags played like folders, in MCAP (rosbag2's default storage since Iron) or SQLite
+//! (`.db3`, the default before): the camera's frames are extracted once into a TUM RGB-D folder
+//! (`rgb.txt`, `depth.txt`, `camera.json`), which the player and the offline run then read like
+//! any other.
 //!
-//! - Messages are read in file order with the `mcap` crate (chunks compressed with zstd or lz4
-//!   included), one at a time: memory holds one message, not the bag. The bag is read twice:
-//!   once for its topics (to choose among them and to name them in errors), once for frames.
+//! - MCAP messages are read in file order with the `mcap` crate (chunks compressed with zstd or
+//!   lz4 included), SQLite ones in order of their log time, as rosbag2 plays them; one at a
+//!   time: memory holds one message, not the bag. An MCAP bag is read twice: once for its
+//!   topics (to choose among them and to name them in errors), once for frames; SQLite lists
+//!   its topics in a table.
+//! - A message that cannot be read is skipped and counted (a long recording is not lost to one
+//!   bad message); the extraction says how many and why the first was.
 //! - Colour: `sensor_msgs/msg/CompressedImage` (JPEG or PNG, written as they came) or `Image`
 //!   (`rgb8`, `bgr8`, `rgba8`, `bgra8`, `mono8`, written as PNG). Depth: `Image` (`16UC1` in
 //!   millimetres, `32FC1` in metres) or `CompressedImage` in `compressedDepth png`, written as
@@ -57,18 +62,27 @@ fn io_error(path: &Path) -> impl FnOnce(std::io::Error) -> DatasetError + '_ {
     }
 }
 
-/// Every message of the bag in file order, with its topic and type.
+/// Whether a bag file is rosbag2's SQLite storage (else MCAP).
+fn is_sqlite(bag: &Path) -> bool {
+    bag.extension().is_some_and(|e| e == "db3")
+}
+
+/// Every CDR message on the topics `wanted` picks, in the bag's order, with its topic and type.
 fn for_each_message(
     bag: &Path,
+    wanted: impl Fn(&str) -> bool,
     mut visit: impl FnMut(&str, &str, &[u8]) -> Result<(), DatasetError>,
 ) -> Result<(), DatasetError> {
+    if is_sqlite(bag) {
+        return sqlite::for_each_message(bag, wanted, visit);
+    }
     let file = fs::File::open(bag).map_err(io_error(bag))?;
     for message in mcap::io::MessageReader::new(BufReader::new(file)) {
         let message =
             message.map_err(|e| bag_error(bag, format!("not a readable MCAP file: {e}")))?;
         let channel = &message.channel;
         let schema = channel.schema.as_ref().map_or("", |s| s.name.as_str());
-        if channel.message_encoding != "cdr" {
+        if channel.message_encoding != "cdr" || !wanted(&channel.topic) {
             continue;
         }
         visit(&channel.topic, schema, &message.data)?;
@@ -78,14 +92,115 @@ fn for_each_message(
 
 /// The bag's topics and their message types.
 fn topics(bag: &Path) -> Result<BTreeMap<String, String>, DatasetError> {
+    if is_sqlite(bag) {
+        return sqlite::topics(bag);
+    }
     let mut topics = BTreeMap::new();
-    for_each_message(bag, |topic, schema, _| {
-        topics
-            .entry(topic.to_owned())
-            .or_insert_with(|| schema.to_owned());
-        Ok(())
-    })?;
+    for_each_message(
+        bag,
+        |_| true,
+        |topic, schema, _| {
+            topics
+                .entry(topic.to_owned())
+                .or_insert_with(|| schema.to_owned());
+            Ok(())
+        },
+    )?;
     Ok(topics)
+}
+
+/// rosbag2's SQLite storage: a `topics` table (id, name, type, serialization_format) and a
+/// `messages` table (topic_id, timestamp, data).
+mod sqlite {
+    use super::{bag_error, DatasetError};
+    use rusqlite::{Connection, OpenFlags};
+    use std::collections::BTreeMap;
+    use std::path::Path;
+
+    fn open(bag: &Path) -> Result<Connection, DatasetError> {
+        Connection::open_with_flags(
+            bag,
+            OpenFlags::SQLITE_OPEN_READ_ONLY | OpenFlags::SQLITE_OPEN_NO_MUTEX,
+        )
+        .map_err(|e| unreadable(bag, e))
+    }
+
+    fn unreadable(bag: &Path, e: rusqlite::Error) -> DatasetError {
+        bag_error(bag, format!("not a readable rosbag2 SQLite file: {e}"))
+    }
+
+    pub(super) fn topics(bag: &Path) -> Result<BTreeMap<String, String>, DatasetError> {
+        let db = open(bag)?;
+        let mut query = db
+            .prepare("SELECT name, type FROM topics WHERE serialization_format = 'cdr'")
+            .map_err(|e| unreadable(bag, e))?;
+        let rows = query
+            .query_map([], |row| Ok((row.get(0)?, row.get(1)?)))
+            .map_err(|e| unreadable(bag, e))?;
+        rows.collect::<Result<_, _>>()
+            .map_err(|e| unreadable(bag, e))
+    }
+
+    /// Messages in order of log time (rosbag2's order), each fetched by its id: the order is
+    /// found without sorting the images, and topics not wanted are never read.
+    pub(super) fn for_each_message(
+        bag: &Path,
+        wanted: impl Fn(&str) -> bool,
+        mut visit: impl FnMut(&str, &str, &[u8]) -> Result<(), DatasetError>,
+    ) -> Result<(), DatasetError> {
+        let db = open(bag)?;
+        let topics: Vec<(i64, String, String)> = {
+            let mut query = db
+                .prepare("SELECT id, name, type FROM topics WHERE serialization_format = 'cdr'")
+                .map_err(|e| unreadable(bag, e))?;
+            let rows = query
+                .query_map([], |row| Ok((row.get(0)?, row.get(1)?, row.get(2)?)))
+                .map_err(|e| unreadable(bag, e))?;
+            rows.collect::<Result<_, _>>()
+                .map_err(|e| unreadable(bag, e))?
+        };
+        let chosen: Vec<&(i64, String, String)> =
+            topics.iter().filter(|(_, name, _)| wanted(name)).collect();
+        if chosen.is_empty() {
+            return Ok(());
+        }
+        let ids = chosen
+            .iter()
+            .map(|(id, _, _)| id.to_string())
+            .collect::<Vec<_>>()
+            .join(",");
+        let order: Vec<(i64, i64)> = {
+            let mut query = db
+                .prepare(&format!(
+                    "SELECT id, topic_id FROM messages WHERE topic_id IN ({ids}) \
+                     ORDER BY timestamp, id"
+                ))
+                .map_err(|e| unreadable(bag, e))?;
+            let rows = query
+                .query_map([], |row| Ok((row.get(0)?, row.get(1)?)))
+                .map_err(|e| unreadable(bag, e))?;
+            rows.collect::<Result<_, _>>()
+                .map_err(|e| unreadable(bag, e))?
+        };
+        let mut data = db
+            .prepare("SELECT data FROM messages WHERE id = ?1")
+            .map_err(|e| unreadable(bag, e))?;
+        for (id, topic_id) in order {
+            let Some((_, name, kind)) = chosen.iter().find(|(t, _, _)| *t == topic_id) else {
+                continue;
+            };
+            let mut rows = data.query([id]).map_err(|e| unreadable(bag, e))?;
+            let Some(row) = rows.next().map_err(|e| unreadable(bag, e))? else {
+                continue;
+            };
+            let bytes = row
+                .get_ref(0)
+                .and_then(|v| v.as_blob().map_err(Into::into))
+                .map_err(|e| unreadable(bag, e))?;
+            visit(name, kind, bytes)?;
+        }
+        Ok(())
+    }
 }
 
 /// Chooses the colour, depth and camera-info topics by their types and names.
@@ -197,10 +312,11 @@ fn choose(
     Ok((colour, depth, camera_info))
 }
 
-/// The MCAP file `path` names: the file itself, or the one `.mcap` file of a rosbag2 folder.
+/// The bag file `path` names: the `.mcap` or `.db3` file itself, or the one such file of a
+/// rosbag2 folder.
 pub fn bag_file(path: &Path) -> Option<PathBuf> {
-    let is_mcap = |p: &Path| p.is_file() && p.extension().is_some_and(|e| e == "mcap");
-    if is_mcap(path) {
+    let is_bag = |p: &Path| p.is_file() && p.extension().is_some_and(|e| e == "mcap" || e == "db3");
+    if is_bag(path) {
         return Some(path.to_owned());
     }
     if !path.join("metadata.yaml").is_file() {
@@ -209,7 +325,7 @@ pub fn bag_file(path: &Path) -> Option<PathBuf> {
     let mut files = fs::read_dir(path)
         .ok()?
         .filter_map(|e| e.ok().map(|e| e.path()))
-        .filter(|p| is_mcap(p));
+        .filter(|p| is_bag(p));
     match (files.next(), files.next()) {
         (Some(one), None) => Some(one),
         _ => None,
@@ -276,12 +392,102 @@ impl Stream {
     }
 }
 
-/// Extracts the camera's frames of `bag` into `out` as a TUM RGB-D folder. Returns the number of
-/// colour and depth images written.
-pub fn extract(bag: &Path, given: &BagTopics, out: &Path) -> Result<(usize, usize), DatasetError> {
+/// What [`extract`] wrote, and the messages it skipped.
+#[derive(Debug, Clone, Default, PartialEq, Eq)]
+pub struct Extracted {
+    pub colour: usize,
+    pub depth: usize,
+    /// Messages on the camera's topics that could not be read.
+    pub skipped: usize,
+    /// Why the first skipped message could not be read, with its topic.
+    pub first_skipped: Option<String>,
+}
+
+/// One camera message, read.
+enum Item<'a> {
+    Camera(vsgraphs_proto::CameraModel),
+    Colour {
+        stamp_ns: u64,
+        frame_id: &'a str,
+        ext: &'static str,
+        bytes: std::borrow::Cow<'a, [u8]>,
+    },
+    Depth {
+        stamp_ns: u64,
+        frame_id: &'a str,
+        png: Vec<u8>,
+    },
+}
+
+/// Reads one message of the colour, depth or camera-info topic (`role`) as the file to write.
+fn read_item<'a>(role: Role, kind: &str, data: &'a [u8]) -> Result<Item<'a>, String> {
+    let text = |e: &dyn std::fmt::Display| e.to_string();
+    Ok(match role {
+        Role::CameraInfo => {
+            let info = CameraInfo::from_cdr(data).map_err(|e| text(&e))?;
+            Item::Camera(convert::camera(&info).map_err(|e| text(&e))?)
+        }
+        Role::Colour if kind == COMPRESSED => {
+            let image = CompressedImage::from_cdr(data).map_err(|e| text(&e))?;
+            let wire = convert::colour_compressed(&image).map_err(|e| text(&e))?;
+            Item::Colour {
+                stamp_ns: image.header.stamp_ns,
+                frame_id: image.header.frame_id,
+                ext: if wire.encoding() == vsgraphs_proto::ColourEncoding::Jpeg {
+                    "jpg"
+                } else {
+                    "png"
+                },
+                bytes: image.data.into(),
+            }
+        }
+        Role::Colour => {
+            let image = Image::from_cdr(data).map_err(|e| text(&e))?;
+            let wire = convert::colour(&image).map_err(|e| text(&e))?;
+            let png = colour_png(&wire.data, image.width, image.height, wire.pixel_format())
+                .map_err(|e| text(&e))?;
+            Item::Colour {
+                stamp_ns: image.header.stamp_ns,
+                frame_id: image.header.frame_id,
+                ext: "png",
+                bytes: png.into(),
+            }
+        }
+        Role::Depth => {
+            let (header, values) = if kind == COMPRESSED {
+                let image = CompressedImage::from_cdr(data).map_err(|e| text(&e))?;
+                let values = convert::depth_compressed(&image).map_err(|e| text(&e))?;
+                (image.header, values)
+            } else {
+                let image = Image::from_cdr(data).map_err(|e| text(&e))?;
+                let values = convert::depth(&image).map_err(|e| text(&e))?;
+                (image.header, values)
+            };
+            Item::Depth {
+                stamp_ns: header.stamp_ns,
+                frame_id: header.frame_id,
+                png: png16::encode(&values.data, values.width, values.height)
+                    .map_err(|e| text(&e))?,
+            }
+        }
+    })
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Role {
+    Colour,
+    Depth,
+    CameraInfo,
+}
+
+/// Extracts the camera's frames of `bag` into `out` as a TUM RGB-D folder.
+pub fn extract(bag: &Path, given: &BagTopics, out: &Path) -> Result<Extracted, DatasetError> {
     let all = topics(bag)?;
     let (colour_topic, depth_topic, info_topic) = choose(bag, given, &all)?;
-    let part = out.with_extension("part");
+    // `.part` after the whole name: the name holds dots of its own (the bag's extension).
+    let mut part_name = out.file_name().unwrap_or_default().to_owned();
+    part_name.push(".part");
+    let part = out.with_file_name(part_name);
     let _ = fs::remove_dir_all(&part);
     for dir in ["rgb", "depth"] {
         fs::create_dir_all(part.join(dir)).map_err(io_error(&part))?;
@@ -297,67 +503,71 @@ pub fn extract(bag: &Path, given: &BagTopics, out: &Path) -> Result<(usize, usiz
         frame_id: None,
     };
     let mut camera = None;
-    let on =
-        |topic: &str, e: vsgraphs_proto::ros::RosError| bag_error(bag, format!("{topic}: {e}"));
-    let cdr =
-        |topic: &str, e: vsgraphs_proto::ros::CdrError| bag_error(bag, format!("{topic}: {e}"));
-    for_each_message(bag, |topic, kind, data| {
-        if topic == info_topic && camera.is_none() {
-            let info = CameraInfo::from_cdr(data).map_err(|e| cdr(topic, e))?;
-            camera = Some(convert::camera(&info).map_err(|e| on(topic, e))?);
-        } else if topic == colour_topic {
-            if kind == COMPRESSED {
-                let image = CompressedImage::from_cdr(data).map_err(|e| cdr(topic, e))?;
-                let wire = convert::colour_compressed(&image).map_err(|e| on(topic, e))?;
-                let ext = if wire.encoding() == vsgraphs_proto::ColourEncoding::Jpeg {
-                    "jpg"
-                } else {
-                    "png"
-                };
-                colour.write(
-                    &part,
-                    image.header.stamp_ns,
-                    image.header.frame_id,
-                    ext,
-                    image.data,
-                )?;
-            } else {
-                let image = Image::from_cdr(data).map_err(|e| cdr(topic, e))?;
-                let wire = convert::colour(&image).map_err(|e| on(topic, e))?;
-                let png = colour_png(&wire.data, image.width, image.height, wire.pixel_format())
-                    .map_err(|e| bag_error(bag, format!("{topic}: {e}")))?;
-                colour.write(
-                    &part,
-                    image.header.stamp_ns,
-                    image.header.frame_id,
-                    "png",
-                    &png,
-                )?;
-            }
+    let mut extracted = Extracted::default();
+    let role = |topic: &str| {
+        if topic == colour_topic {
+            Some(Role::Colour)
         } else if topic == depth_topic {
-            let (stamp, frame_id, values) = if kind == COMPRESSED {
-                let image = CompressedImage::from_cdr(data).map_err(|e| cdr(topic, e))?;
-                let values = convert::depth_compressed(&image).map_err(|e| on(topic, e))?;
-                (image.header.stamp_ns, image.header.frame_id, values)
-            } else {
-                let image = Image::from_cdr(data).map_err(|e| cdr(topic, e))?;
-                let values = convert::depth(&image).map_err(|e| on(topic, e))?;
-                (image.header.stamp_ns, image.header.frame_id, values)
-            };
-            let png = png16::encode(&values.data, values.width, values.height)
-                .map_err(|e| bag_error(bag, format!("{topic}: {e}")))?;
-            depth.write(&part, stamp, frame_id, "png", &png)?;
+            Some(Role::Depth)
+        } else if topic == info_topic {
+            Some(Role::CameraInfo)
+        } else {
+            None
         }
-        Ok(())
-    })?;
-    let camera = camera.ok_or_else(|| bag_error(bag, format!("no message on {info_topic}")))?;
+    };
+    for_each_message(
+        bag,
+        |topic| role(topic).is_some(),
+        |topic, kind, data| {
+            let Some(role) = role(topic) else {
+                return Ok(());
+            };
+            if role == Role::CameraInfo && camera.is_some() {
+                return Ok(());
+            }
+            match read_item(role, kind, data) {
+                Ok(Item::Camera(model)) => camera = Some(model),
+                Ok(Item::Colour {
+                    stamp_ns,
+                    frame_id,
+                    ext,
+                    bytes,
+                }) => colour.write(&part, stamp_ns, frame_id, ext, &bytes)?,
+                Ok(Item::Depth {
+                    stamp_ns,
+                    frame_id,
+                    png,
+                }) => depth.write(&part, stamp_ns, frame_id, "png", &png)?,
+                Err(e) => {
+                    extracted.skipped += 1;
+                    extracted
+                        .first_skipped
+                        .get_or_insert_with(|| format!("{topic}: {e}"));
+                }
+            }
+            Ok(())
+        },
+    )?;
+    let why = || {
+        extracted
+            .first_skipped
+            .as_ref()
+            .map_or(String::new(), |e| format!(" (skipped as unreadable: {e})"))
+    };
+    let Some(camera) = camera else {
+        return Err(bag_error(
+            bag,
+            format!("no readable message on {info_topic}{}", why()),
+        ));
+    };
     if colour.lines.is_empty() || depth.lines.is_empty() {
         return Err(bag_error(
             bag,
             format!(
-                "{} colour images on {colour_topic} and {} depth images on {depth_topic}: both are needed",
+                "{} colour images on {colour_topic} and {} depth images on {depth_topic}: both are needed{}",
                 colour.lines.len(),
-                depth.lines.len()
+                depth.lines.len(),
+                why()
             ),
         ));
     }
@@ -375,7 +585,9 @@ pub fn extract(bag: &Path, given: &BagTopics, out: &Path) -> Result<(usize, usiz
     writeln!(file, "{json}").map_err(io_error(&path))?;
     let _ = fs::remove_dir_all(out);
     fs::rename(&part, out).map_err(io_error(out))?;
-    Ok((colour.lines.len(), depth.lines.len()))
+    extracted.colour = colour.lines.len();
+    extracted.depth = depth.lines.len();
+    Ok(extracted)
 }
 
 /// Raw colour pixels as an 8-bit PNG (lossless, so the extracted frame is the published one).
@@ -515,5 +727,31 @@ mod tests {
                 && error.contains("/rgb/image_raw (sensor_msgs/msg/Image)"),
             "{error}"
         );
+    }
+
+    #[test]
+    fn files_that_are_not_sqlite_bags_say_so() {
+        let dir = tempfile::tempdir().unwrap();
+        let out = dir.path().join("out");
+        let garbage = dir.path().join("garbage.db3");
+        fs::write(&garbage, b"not a database, though named like one").unwrap();
+        let error = extract(&garbage, &BagTopics::default(), &out)
+            .unwrap_err()
+            .to_string();
+        assert!(
+            error.contains("not a readable rosbag2 SQLite file"),
+            "{error}"
+        );
+        // A database without rosbag2's tables.
+        let empty = dir.path().join("empty.db3");
+        rusqlite::Connection::open(&empty)
+            .unwrap()
+            .execute_batch("CREATE TABLE other (x INTEGER);")
+            .unwrap();
+        let error = extract(&empty, &BagTopics::default(), &out)
+            .unwrap_err()
+            .to_string();
+        assert!(error.contains("no such table: topics"), "{error}");
+        assert!(!out.exists());
     }
 }

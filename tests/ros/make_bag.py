@@ -1,20 +1,23 @@
 """A ROS 2 bag (MCAP) of 7-Scenes frames, written by the `rosbags` package as a RealSense
 driver's topics would be recorded, for `tests/tests/ros_bags.rs`.
 
-    python make_bag.py SEVEN_SCENES_DIR OUT_BAG_DIR FRAMES [RAW_DIR]
+    python make_bag.py SEVEN_SCENES_DIR OUT_BAG_DIR FRAMES [--raw DIR] [--storage sqlite3]
+                       [--corrupt]
 
 Colour: `CompressedImage` with each frame's JPEG file as it is; depth: `CompressedImage` in
 `16UC1; compressedDepth png` with each frame's PNG file after the plugin's 12-byte
-configuration. With RAW_DIR, raw `Image`s instead, of the pixels the caller decoded there
+configuration. With --raw DIR, raw `Image`s instead, of the pixels the caller decoded there
 (`frame-NNNNNN.grey`: 8-bit, `frame-NNNNNN.depth`: little-endian 16-bit), as `mono8` with
 four bytes of padding a row and `16UC1`; the colour camera's `CameraInfo` from `camera-intrinsics.txt` (plumb_bob, zero
 distortion). Stamps: 1,700,000,000 s plus the frame's index times 33,333,333 ns (7-Scenes is
 30 Hz without stamps); depth in its own frame_id, as 7-Scenes' depth is not registered. An IMU
-topic the reader must pass over is recorded too.
+topic the reader must pass over is recorded too. The storage is MCAP, or SQLite (`.db3`) with
+`--storage sqlite3`. With `--corrupt`, a colour message that is not CDR comes after the second
+frame, which a reader must skip.
 """
+import argparse
 import os
 import struct
-import sys
 
 import numpy as np
 from rosbags.rosbag2 import StoragePlugin, Writer
@@ -46,10 +49,11 @@ def raw_image(stamp, frame, encoding, pixels, bytes_per_pixel, padding):
                is_bigendian=0, step=row + padding, data=padded.flatten())
 
 
-def main(src, out, frames, raw=None):
+def main(src, out, frames, raw=None, storage="mcap", corrupt=False):
     with open(os.path.join(src, "camera-intrinsics.txt")) as f:
         k = [float(v) for v in f.read().split()]
-    with Writer(out, version=9, storage_plugin=StoragePlugin.MCAP) as bag:
+    plugin = StoragePlugin.SQLITE3 if storage == "sqlite3" else StoragePlugin.MCAP
+    with Writer(out, version=9, storage_plugin=plugin) as bag:
         if raw:
             colour = bag.add_connection(f"{NS}/color/image_raw", Raw.__msgtype__, typestore=TS)
             depth = bag.add_connection(f"{NS}/depth/image_rect_raw", Raw.__msgtype__,
@@ -93,6 +97,8 @@ def main(src, out, frames, raw=None):
                 angular_velocity_covariance=np.zeros(9),
                 linear_acceleration=Vector3(x=0.0, y=0.0, z=9.81),
                 linear_acceleration_covariance=np.zeros(9)))
+            if corrupt and i == 2:
+                bag.write(colour, stamp + 2_000_000, b"\x00\x01\x00\x00not an image")
             # Depth is logged a little after colour, as a driver's second stream would be.
             if raw:
                 mm = np.fromfile(os.path.join(raw, f"frame-{i:06d}.depth"), dtype=np.uint8)
@@ -106,4 +112,12 @@ def main(src, out, frames, raw=None):
 
 
 if __name__ == "__main__":
-    main(sys.argv[1], sys.argv[2], int(sys.argv[3]), sys.argv[4] if len(sys.argv) > 4 else None)
+    parser = argparse.ArgumentParser()
+    parser.add_argument("src")
+    parser.add_argument("out")
+    parser.add_argument("frames", type=int)
+    parser.add_argument("--raw")
+    parser.add_argument("--storage", default="mcap", choices=["mcap", "sqlite3"])
+    parser.add_argument("--corrupt", action="store_true")
+    a = parser.parse_args()
+    main(a.src, a.out, a.frames, a.raw, a.storage, a.corrupt)

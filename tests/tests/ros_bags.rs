@@ -1,6 +1,7 @@
-//! A ROS 2 bag (MCAP, written by `rosbags` from the 7-Scenes frames as a RealSense driver's
-//! topics: `ros/make_bag.py`) plays like the folder it was made from: the same frames, camera
-//! and depth registration, and through the pipeline the same trajectory.
+//! A ROS 2 bag (MCAP or SQLite, written by `rosbags` from the 7-Scenes frames as a RealSense
+//! driver's topics: `ros/make_bag.py`) plays like the folder it was made from: the same frames,
+//! camera and depth registration, and through the pipeline the same trajectory. A message that
+//! is not CDR is skipped and counted.
 
 use std::path::Path;
 use std::process::Command;
@@ -15,8 +16,20 @@ const FRAMES: usize = 60;
 const BASE_NS: u64 = 1_700_000_000_000_000_000;
 
 #[test]
-fn a_bag_plays_as_the_folder_it_was_made_from() {
-    let test = "a_bag_plays_as_the_folder_it_was_made_from";
+fn an_mcap_bag_with_a_broken_message_plays_as_the_folder() {
+    bag_plays_as_the_folder(
+        "an_mcap_bag_with_a_broken_message_plays_as_the_folder",
+        "mcap",
+        true,
+    );
+}
+
+#[test]
+fn a_sqlite_bag_plays_as_the_folder() {
+    bag_plays_as_the_folder("a_sqlite_bag_plays_as_the_folder", "db3", false);
+}
+
+fn bag_plays_as_the_folder(test: &str, extension: &str, corrupt: bool) {
     let (Some(data), Some(python)) = (data_dir(test), python_with_rosbags(test)) else {
         return;
     };
@@ -24,14 +37,25 @@ fn a_bag_plays_as_the_folder_it_was_made_from() {
     let dir = tempfile::tempdir().unwrap();
     let bag_dir = dir.path().join("kinect_bag");
     let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("ros/make_bag.py");
-    let status = Command::new(&python)
+    let mut command = Command::new(&python);
+    command
         .arg(&script)
         .arg(data.join("7scenes-a"))
         .arg(&bag_dir)
-        .arg(FRAMES.to_string())
-        .status()
-        .unwrap();
-    assert!(status.success(), "{} failed", script.display());
+        .arg(FRAMES.to_string());
+    if extension == "db3" {
+        command.args(["--storage", "sqlite3"]);
+    }
+    if corrupt {
+        command.arg("--corrupt");
+    }
+    assert!(
+        command.status().unwrap().success(),
+        "{} failed",
+        script.display()
+    );
+    let bag_file = bag_dir.join(format!("kinect_bag.{extension}"));
+    assert!(bag_file.is_file(), "{}", bag_file.display());
 
     // The rosbag2 folder opens as a dataset; its frames are extracted once.
     let bag = dataset::open(&bag_dir).unwrap();
@@ -40,6 +64,17 @@ fn a_bag_plays_as_the_folder_it_was_made_from() {
         "{:?}",
         bag.warnings
     );
+    let skipped = bag.warnings.iter().find(|w| w.contains("skipped"));
+    if corrupt {
+        let note = skipped.expect("the broken message is skipped and counted");
+        assert!(
+            note.starts_with("1 unreadable messages skipped")
+                && note.contains("/camera/camera/color/image_raw/compressed"),
+            "{note}"
+        );
+    } else {
+        assert_eq!(skipped, None);
+    }
     assert!(
         dataset::open(&bag_dir).unwrap().warnings.is_empty(),
         "extracted again"
@@ -96,14 +131,15 @@ fn a_bag_plays_as_the_folder_it_was_made_from() {
         colour: Some("/camera/color/image_raw".into()),
         ..BagTopics::default()
     };
-    let mcap = bag_dir.join("kinect_bag.mcap");
-    let error = dataset::open_bag(&mcap, &topics).unwrap_err().to_string();
+    let error = dataset::open_bag(&bag_file, &topics)
+        .unwrap_err()
+        .to_string();
     assert!(
         error.contains("/camera/color/image_raw is not in the bag")
             && error.contains("/camera/camera/color/image_raw/compressed"),
         "{error}"
     );
     // The extracted frames live in the temporary folder; this test's bag is gone after it.
-    let frames = vsgraphs_datasets::rosbag::frames_dir(&mcap, &BagTopics::default()).unwrap();
+    let frames = vsgraphs_datasets::rosbag::frames_dir(&bag_file, &BagTopics::default()).unwrap();
     std::fs::remove_dir_all(frames).unwrap();
 }

@@ -104,7 +104,7 @@ async fn ros_robot_tracks_like_the_folder(test: &str, raw: bool, keys: RosKeys) 
         let pixels: PathBuf = dir.path().join("pixels");
         std::fs::create_dir(&pixels).unwrap();
         decode_frames(&folder, &pixels);
-        command.arg(&pixels);
+        command.arg("--raw").arg(&pixels);
     }
     assert!(command.status().unwrap().success(), "{}", script.display());
     let messages = recorded(&bag_dir.join("bag.mcap"));

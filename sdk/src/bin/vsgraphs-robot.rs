@@ -236,7 +236,7 @@ async fn main() -> anyhow::Result<()> {
                 None => None,
             };
             for warning in &dataset.warnings {
-                eprintln!("warning: {warning}");
+                eprintln!("note: {warning}");
             }
             let config = RobotConfig {
                 robot_id: robot_id.clone(),
