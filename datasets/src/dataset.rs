@@ -59,8 +59,8 @@ pub struct Dataset {
     pub warnings: Vec<String>,
 }
 
-/// Opens a sequence, recognising its layout: a TUM RGB-D or 7-Scenes folder, or a ROS 2 bag
-/// (an `.mcap` or `.db3` file, or a rosbag2 folder holding one) with its topics chosen by
+/// Opens a sequence, recognising its layout: a TUM RGB-D or 7-Scenes folder, a ROS 1 bag, or a
+/// ROS 2 bag (an `.mcap` or `.db3` file, or a rosbag2 folder holding one) with its topics chosen by
 /// [`crate::rosbag`].
 pub fn open(root: &Path) -> Result<Dataset, DatasetError> {
     if let Some(bag) = crate::rosbag::bag_file(root) {

@@ -1,6 +1,6 @@
 //! Recorded data on disk: RGB-D sequences in the TUM RGB-D and 7-Scenes layouts, each frame
-//! read and encoded as a robot would send it ([`dataset`]), ROS 2 bags (MCAP) whose camera
-//! frames are extracted into such a folder ([`rosbag`]), and trajectories in the TUM text format
+//! read and encoded as a robot would send it ([`dataset`]), ROS bags (ROS 1; ROS 2 in
+//! MCAP or SQLite) whose camera frames are extracted into such a folder ([`rosbag`]), and trajectories in the TUM text format
 //! ([`trajectory`]).
 //!
 //! Shared by the robot's player, the server's offline runner, the simulator (which writes both)

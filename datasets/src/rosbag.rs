@@ -1,7 +1,9 @@
-//! ROS 2 bags played like folders, in MCAP (rosbag2's default storage since Iron) or SQLite
-//! (`.db3`, the default before): the camera's frames are extracted once into a TUM RGB-D folder
-//! (`rgb.txt`, `depth.txt`, `camera.json`), which the player and the offline run then read like
-//! any other.
+//! ROS bags played like folders: ROS 2's in MCAP (rosbag2's default storage since Iron) or
+//! SQLite (`.db3`, the default before), ROS 1's `.bag` files (format 2.0, through the `rosbag`
+//! crate): the camera's frames are extracted once into a TUM RGB-D folder (`rgb.txt`,
+//! `depth.txt`, `camera.json`), which the player and the offline run then read like any other.
+//! ROS 1 message types are named as ROS 2 names them (`sensor_msgs/Image` as
+//! `sensor_msgs/msg/Image`) and read in ROS 1's layout.
 //!
 //! - MCAP messages are read in file order with the `mcap` crate (chunks compressed with zstd or
 //!   lz4 included), SQLite ones in order of their log time, as rosbag2 plays them; one at a
@@ -32,7 +34,7 @@ use std::io::{BufReader, Write};
 use std::path::{Path, PathBuf};
 
 use vsgraphs_proto::png16;
-use vsgraphs_proto::ros::{convert, CameraInfo, CompressedImage, Image};
+use vsgraphs_proto::ros::{convert, CameraInfo, CompressedImage, Image, Layout};
 
 use crate::error::DatasetError;
 
@@ -62,9 +64,14 @@ fn io_error(path: &Path) -> impl FnOnce(std::io::Error) -> DatasetError + '_ {
     }
 }
 
-/// Whether a bag file is rosbag2's SQLite storage (else MCAP).
+/// Whether a bag file is rosbag2's SQLite storage.
 fn is_sqlite(bag: &Path) -> bool {
     bag.extension().is_some_and(|e| e == "db3")
+}
+
+/// Whether a bag file is a ROS 1 bag.
+fn is_ros1(bag: &Path) -> bool {
+    bag.extension().is_some_and(|e| e == "bag")
 }
 
 /// Every CDR message on the topics `wanted` picks, in the bag's order, with its topic and type.
@@ -75,6 +82,9 @@ fn for_each_message(
 ) -> Result<(), DatasetError> {
     if is_sqlite(bag) {
         return sqlite::for_each_message(bag, wanted, visit);
+    }
+    if is_ros1(bag) {
+        return ros1::for_each_message(bag, wanted, visit);
     }
     let file = fs::File::open(bag).map_err(io_error(bag))?;
     for message in mcap::io::MessageReader::new(BufReader::new(file)) {
@@ -95,6 +105,9 @@ fn topics(bag: &Path) -> Result<BTreeMap<String, String>, DatasetError> {
     if is_sqlite(bag) {
         return sqlite::topics(bag);
     }
+    if is_ros1(bag) {
+        return ros1::topics(bag);
+    }
     let mut topics = BTreeMap::new();
     for_each_message(
         bag,
@@ -107,6 +120,82 @@ fn topics(bag: &Path) -> Result<BTreeMap<String, String>, DatasetError> {
         },
     )?;
     Ok(topics)
+}
+
+/// ROS 1 bags: connection records name each connection's topic and type; message records
+/// follow in chunks (plain, bz2 or lz4), in the order they were recorded.
+mod ros1 {
+    use super::{bag_error, DatasetError};
+    use rosbag::{ChunkRecord, IndexRecord, MessageRecord, RosBag};
+    use std::collections::{BTreeMap, HashMap};
+    use std::path::Path;
+
+    fn unreadable(bag: &Path, e: impl std::fmt::Display) -> DatasetError {
+        bag_error(bag, format!("not a readable ROS 1 bag: {e}"))
+    }
+
+    /// A ROS 1 type by its ROS 2 name (`sensor_msgs/Image` → `sensor_msgs/msg/Image`).
+    fn ros2_name(tp: &str) -> String {
+        match tp.split_once('/') {
+            Some((package, name)) if !name.contains('/') => format!("{package}/msg/{name}"),
+            _ => tp.to_owned(),
+        }
+    }
+
+    pub(super) fn topics(bag: &Path) -> Result<BTreeMap<String, String>, DatasetError> {
+        let file = RosBag::new(bag).map_err(|e| unreadable(bag, e))?;
+        let mut topics = BTreeMap::new();
+        for record in file.index_records() {
+            if let IndexRecord::Connection(c) = record.map_err(|e| unreadable(bag, e))? {
+                topics.insert(c.topic.to_owned(), ros2_name(c.tp));
+            }
+        }
+        Ok(topics)
+    }
+
+    pub(super) fn for_each_message(
+        bag: &Path,
+        wanted: impl Fn(&str) -> bool,
+        mut visit: impl FnMut(&str, &str, &[u8]) -> Result<(), DatasetError>,
+    ) -> Result<(), DatasetError> {
+        let file = RosBag::new(bag).map_err(|e| unreadable(bag, e))?;
+        let mut connections: HashMap<u32, Option<(String, String)>> = HashMap::new();
+        for record in file.chunk_records() {
+            let ChunkRecord::Chunk(chunk) = record.map_err(|e| unreadable(bag, e))? else {
+                continue;
+            };
+            for message in chunk.messages() {
+                match message.map_err(|e| unreadable(bag, e))? {
+                    MessageRecord::Connection(c) => {
+                        let chosen = wanted(c.topic).then(|| (c.topic.to_owned(), ros2_name(c.tp)));
+                        connections.insert(c.id, chosen);
+                    }
+                    MessageRecord::MessageData(m) => {
+                        if let Some(Some((topic, kind))) = connections.get(&m.conn_id) {
+                            visit(topic, kind, m.data)?;
+                        }
+                    }
+                }
+            }
+        }
+        Ok(())
+    }
+
+    #[cfg(test)]
+    mod tests {
+        #[test]
+        fn ros1_types_take_ros2_names() {
+            assert_eq!(
+                super::ros2_name("sensor_msgs/Image"),
+                "sensor_msgs/msg/Image"
+            );
+            assert_eq!(
+                super::ros2_name("sensor_msgs/msg/Image"),
+                "sensor_msgs/msg/Image"
+            );
+            assert_eq!(super::ros2_name("odd"), "odd");
+        }
+    }
 }
 
 /// rosbag2's SQLite storage: a `topics` table (id, name, type, serialization_format) and a
@@ -312,11 +401,11 @@ fn choose(
     Ok((colour, depth, camera_info))
 }
 
-/// The bag file `path` names: the `.mcap` or `.db3` file itself, or the one such file of a
-/// rosbag2 folder.
+/// The bag file `path` names: a ROS 1 `.bag` file, a ROS 2 `.mcap` or `.db3` file, or the one
+/// such file of a rosbag2 folder.
 pub fn bag_file(path: &Path) -> Option<PathBuf> {
     let is_bag = |p: &Path| p.is_file() && p.extension().is_some_and(|e| e == "mcap" || e == "db3");
-    if is_bag(path) {
+    if is_bag(path) || (path.is_file() && is_ros1(path)) {
         return Some(path.to_owned());
     }
     if !path.join("metadata.yaml").is_file() {
@@ -419,16 +508,22 @@ enum Item<'a> {
     },
 }
 
-/// Reads one message of the colour, depth or camera-info topic (`role`) as the file to write.
-fn read_item<'a>(role: Role, kind: &str, data: &'a [u8]) -> Result<Item<'a>, String> {
+/// Reads one message (in `layout`) of the colour, depth or camera-info topic (`role`) as the
+/// file to write.
+fn read_item<'a>(
+    role: Role,
+    kind: &str,
+    data: &'a [u8],
+    layout: Layout,
+) -> Result<Item<'a>, String> {
     let text = |e: &dyn std::fmt::Display| e.to_string();
     Ok(match role {
         Role::CameraInfo => {
-            let info = CameraInfo::from_cdr(data).map_err(|e| text(&e))?;
+            let info = CameraInfo::read(data, layout).map_err(|e| text(&e))?;
             Item::Camera(convert::camera(&info).map_err(|e| text(&e))?)
         }
         Role::Colour if kind == COMPRESSED => {
-            let image = CompressedImage::from_cdr(data).map_err(|e| text(&e))?;
+            let image = CompressedImage::read(data, layout).map_err(|e| text(&e))?;
             let wire = convert::colour_compressed(&image).map_err(|e| text(&e))?;
             Item::Colour {
                 stamp_ns: image.header.stamp_ns,
@@ -442,7 +537,7 @@ fn read_item<'a>(role: Role, kind: &str, data: &'a [u8]) -> Result<Item<'a>, Str
             }
         }
         Role::Colour => {
-            let image = Image::from_cdr(data).map_err(|e| text(&e))?;
+            let image = Image::read(data, layout).map_err(|e| text(&e))?;
             let wire = convert::colour(&image).map_err(|e| text(&e))?;
             let png = colour_png(&wire.data, image.width, image.height, wire.pixel_format())
                 .map_err(|e| text(&e))?;
@@ -455,11 +550,11 @@ fn read_item<'a>(role: Role, kind: &str, data: &'a [u8]) -> Result<Item<'a>, Str
         }
         Role::Depth => {
             let (header, values) = if kind == COMPRESSED {
-                let image = CompressedImage::from_cdr(data).map_err(|e| text(&e))?;
+                let image = CompressedImage::read(data, layout).map_err(|e| text(&e))?;
                 let values = convert::depth_compressed(&image).map_err(|e| text(&e))?;
                 (image.header, values)
             } else {
-                let image = Image::from_cdr(data).map_err(|e| text(&e))?;
+                let image = Image::read(data, layout).map_err(|e| text(&e))?;
                 let values = convert::depth(&image).map_err(|e| text(&e))?;
                 (image.header, values)
             };
@@ -484,6 +579,11 @@ enum Role {
 pub fn extract(bag: &Path, given: &BagTopics, out: &Path) -> Result<Extracted, DatasetError> {
     let all = topics(bag)?;
     let (colour_topic, depth_topic, info_topic) = choose(bag, given, &all)?;
+    let layout = if is_ros1(bag) {
+        Layout::Ros1
+    } else {
+        Layout::Cdr
+    };
     // `.part` after the whole name: the name holds dots of its own (the bag's extension).
     let mut part_name = out.file_name().unwrap_or_default().to_owned();
     part_name.push(".part");
@@ -525,7 +625,7 @@ pub fn extract(bag: &Path, given: &BagTopics, out: &Path) -> Result<Extracted, D
             if role == Role::CameraInfo && camera.is_some() {
                 return Ok(());
             }
-            match read_item(role, kind, data) {
+            match read_item(role, kind, data, layout) {
                 Ok(Item::Camera(model)) => camera = Some(model),
                 Ok(Item::Colour {
                     stamp_ns,

@@ -29,13 +29,26 @@ fn a_sqlite_bag_plays_as_the_folder() {
     bag_plays_as_the_folder("a_sqlite_bag_plays_as_the_folder", "db3", false);
 }
 
+#[test]
+fn a_ros1_bag_with_a_broken_message_plays_as_the_folder() {
+    bag_plays_as_the_folder(
+        "a_ros1_bag_with_a_broken_message_plays_as_the_folder",
+        "bag",
+        true,
+    );
+}
+
 fn bag_plays_as_the_folder(test: &str, extension: &str, corrupt: bool) {
     let (Some(data), Some(python)) = (data_dir(test), python_with_rosbags(test)) else {
         return;
     };
     let folder = dataset::open(&data.join("7scenes-a")).unwrap();
     let dir = tempfile::tempdir().unwrap();
-    let bag_dir = dir.path().join("kinect_bag");
+    // A rosbag2 folder, or a ROS 1 bag file.
+    let bag_dir = match extension {
+        "bag" => dir.path().join("kinect_bag.bag"),
+        _ => dir.path().join("kinect_bag"),
+    };
     let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("ros/make_bag.py");
     let mut command = Command::new(&python);
     command
@@ -43,8 +56,10 @@ fn bag_plays_as_the_folder(test: &str, extension: &str, corrupt: bool) {
         .arg(data.join("7scenes-a"))
         .arg(&bag_dir)
         .arg(FRAMES.to_string());
-    if extension == "db3" {
-        command.args(["--storage", "sqlite3"]);
+    match extension {
+        "db3" => drop(command.args(["--storage", "sqlite3"])),
+        "bag" => drop(command.args(["--storage", "ros1"])),
+        _ => {}
     }
     if corrupt {
         command.arg("--corrupt");
@@ -54,7 +69,10 @@ fn bag_plays_as_the_folder(test: &str, extension: &str, corrupt: bool) {
         "{} failed",
         script.display()
     );
-    let bag_file = bag_dir.join(format!("kinect_bag.{extension}"));
+    let bag_file = match extension {
+        "bag" => bag_dir.clone(),
+        _ => bag_dir.join(format!("kinect_bag.{extension}")),
+    };
     assert!(bag_file.is_file(), "{}", bag_file.display());
 
     // The rosbag2 folder opens as a dataset; its frames are extracted once.

@@ -6,6 +6,9 @@
 //! counts a closing NUL, then its bytes; a sequence is a `u32` count, then its elements; a fixed
 //! array is its elements alone.
 //!
+//! ROS 1 serialises the same fields in a simpler layout ([`Layout::Ros1`]): no encapsulation
+//! header, little-endian, no alignment, strings without a closing NUL.
+//!
 //! The reader checks every length against the bytes that are left before it allocates or slices,
 //! so a hostile message gives an error, never a panic or a large allocation.
 
@@ -31,6 +34,15 @@ pub enum CdrError {
     Invalid { what: &'static str, message: String },
 }
 
+/// How a message's fields are laid out.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Layout {
+    /// ROS 2: CDR after its encapsulation header.
+    Cdr,
+    /// ROS 1's serialisation (ROS 1 bags).
+    Ros1,
+}
+
 /// Reads one message's fields in order.
 #[derive(Debug)]
 pub struct Reader<'a> {
@@ -38,6 +50,7 @@ pub struct Reader<'a> {
     body: &'a [u8],
     at: usize,
     little_endian: bool,
+    layout: Layout,
 }
 
 impl<'a> Reader<'a> {
@@ -55,7 +68,25 @@ impl<'a> Reader<'a> {
             body: &bytes[4..],
             at: 0,
             little_endian,
+            layout: Layout::Cdr,
         })
+    }
+
+    /// Starts at the first field of a message in `layout`.
+    pub fn with_layout(bytes: &'a [u8], layout: Layout) -> Result<Self, CdrError> {
+        match layout {
+            Layout::Cdr => Self::new(bytes),
+            Layout::Ros1 => Ok(Self {
+                body: bytes,
+                at: 0,
+                little_endian: true,
+                layout,
+            }),
+        }
+    }
+
+    pub fn layout(&self) -> Layout {
+        self.layout
     }
 
     /// Bytes not read yet (trailing padding is allowed after the last field).
@@ -64,7 +95,10 @@ impl<'a> Reader<'a> {
     }
 
     fn take(&mut self, what: &'static str, align: usize, len: usize) -> Result<&'a [u8], CdrError> {
-        let start = self.at.next_multiple_of(align);
+        let start = match self.layout {
+            Layout::Cdr => self.at.next_multiple_of(align),
+            Layout::Ros1 => self.at,
+        };
         let end = start
             .checked_add(len)
             .filter(|&end| end <= self.body.len())
@@ -111,10 +145,13 @@ impl<'a> Reader<'a> {
         Ok(f64::from_le_bytes(self.array(what)?))
     }
 
-    /// A string; its closing NUL is not returned.
+    /// A string; its closing NUL (CDR's) is not returned.
     pub fn string(&mut self, what: &'static str) -> Result<&'a str, CdrError> {
         let len = self.u32(what)? as usize;
         let bytes = self.take(what, 1, len)?;
+        if self.layout == Layout::Ros1 {
+            return std::str::from_utf8(bytes).map_err(|_| CdrError::BadString { what });
+        }
         match bytes.split_last() {
             Some((0, text)) => std::str::from_utf8(text).map_err(|_| CdrError::BadString { what }),
             // Some writers leave the NUL out of an empty string's length.
@@ -202,6 +239,28 @@ mod tests {
             Reader::new(&[0, 7, 0, 0]).unwrap_err(),
             CdrError::Encapsulation(7)
         );
+    }
+
+    #[test]
+    fn ros1_fields_are_packed_and_strings_unterminated() {
+        let mut bytes = vec![1];
+        bytes.extend_from_slice(&7u32.to_le_bytes());
+        bytes.extend_from_slice(&3u32.to_le_bytes());
+        bytes.extend_from_slice(b"abc");
+        bytes.extend_from_slice(&2.5f64.to_le_bytes());
+        let mut r = Reader::with_layout(&bytes, Layout::Ros1).unwrap();
+        assert_eq!(r.u8("a").unwrap(), 1);
+        assert_eq!(r.u32("b").unwrap(), 7);
+        assert_eq!(r.string("s").unwrap(), "abc");
+        assert_eq!(r.f64("c").unwrap(), 2.5);
+        assert_eq!(r.remaining(), 0);
+        let mut short = Reader::with_layout(&bytes[..10], Layout::Ros1).unwrap();
+        short.u8("a").unwrap();
+        short.u32("b").unwrap();
+        assert!(matches!(
+            short.string("s"),
+            Err(CdrError::Truncated { what: "s", .. })
+        ));
     }
 
     #[test]

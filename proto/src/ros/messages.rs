@@ -1,9 +1,10 @@
 //! The ROS 2 messages an RGB-D camera publishes, read from their CDR bytes: `sensor_msgs/msg/`
 //! `Image`, `CompressedImage` and `CameraInfo`, with their `std_msgs/msg/Header`. Field order and
-//! types are those of the message definitions (unchanged from Foxy to Jazzy). Images borrow their
-//! pixel bytes from the message.
+//! types are those of the message definitions (unchanged from Foxy to Jazzy, and ROS 1's but for
+//! its header's `seq` and unsigned seconds, read by the `from_ros1` constructors). Images borrow
+//! their pixel bytes from the message.
 
-use super::cdr::{CdrError, Reader};
+use super::cdr::{CdrError, Layout, Reader};
 
 /// `std_msgs/msg/Header`.
 #[derive(Debug, Clone, PartialEq)]
@@ -65,7 +66,13 @@ pub struct CameraInfo<'a> {
 }
 
 fn header<'a>(r: &mut Reader<'a>) -> Result<Header<'a>, CdrError> {
-    let sec = r.i32("header.stamp.sec")?;
+    let sec = match r.layout() {
+        Layout::Cdr => i64::from(r.i32("header.stamp.sec")?),
+        Layout::Ros1 => {
+            r.u32("header.seq")?;
+            i64::from(r.u32("header.stamp.sec")?)
+        }
+    };
     let nanosec = r.u32("header.stamp.nanosec")?;
     let stamp_ns = u64::try_from(sec)
         .ok()
@@ -83,7 +90,15 @@ fn header<'a>(r: &mut Reader<'a>) -> Result<Header<'a>, CdrError> {
 
 impl<'a> Image<'a> {
     pub fn from_cdr(bytes: &'a [u8]) -> Result<Self, CdrError> {
-        let mut r = Reader::new(bytes)?;
+        Self::read(bytes, Layout::Cdr)
+    }
+
+    pub fn from_ros1(bytes: &'a [u8]) -> Result<Self, CdrError> {
+        Self::read(bytes, Layout::Ros1)
+    }
+
+    pub fn read(bytes: &'a [u8], layout: Layout) -> Result<Self, CdrError> {
+        let mut r = Reader::with_layout(bytes, layout)?;
         Ok(Self {
             header: header(&mut r)?,
             height: r.u32("height")?,
@@ -98,7 +113,15 @@ impl<'a> Image<'a> {
 
 impl<'a> CompressedImage<'a> {
     pub fn from_cdr(bytes: &'a [u8]) -> Result<Self, CdrError> {
-        let mut r = Reader::new(bytes)?;
+        Self::read(bytes, Layout::Cdr)
+    }
+
+    pub fn from_ros1(bytes: &'a [u8]) -> Result<Self, CdrError> {
+        Self::read(bytes, Layout::Ros1)
+    }
+
+    pub fn read(bytes: &'a [u8], layout: Layout) -> Result<Self, CdrError> {
+        let mut r = Reader::with_layout(bytes, layout)?;
         Ok(Self {
             header: header(&mut r)?,
             format: r.string("format")?,
@@ -109,7 +132,15 @@ impl<'a> CompressedImage<'a> {
 
 impl<'a> CameraInfo<'a> {
     pub fn from_cdr(bytes: &'a [u8]) -> Result<Self, CdrError> {
-        let mut r = Reader::new(bytes)?;
+        Self::read(bytes, Layout::Cdr)
+    }
+
+    pub fn from_ros1(bytes: &'a [u8]) -> Result<Self, CdrError> {
+        Self::read(bytes, Layout::Ros1)
+    }
+
+    pub fn read(bytes: &'a [u8], layout: Layout) -> Result<Self, CdrError> {
+        let mut r = Reader::with_layout(bytes, layout)?;
         Ok(Self {
             header: header(&mut r)?,
             height: r.u32("height")?,

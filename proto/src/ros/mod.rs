@@ -7,7 +7,7 @@ pub mod convert;
 pub mod messages;
 pub mod topics;
 
-pub use cdr::CdrError;
+pub use cdr::{CdrError, Layout};
 pub use convert::RosError;
 pub use messages::{CameraInfo, CompressedImage, Header, Image, RegionOfInterest};
 pub use topics::{KeyFormat, MessageType, TopicError};

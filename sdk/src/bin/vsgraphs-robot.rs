@@ -85,8 +85,9 @@ impl StreamArgs {
 
 #[derive(Subcommand)]
 enum Command {
-    /// Play a recorded sequence: a TUM RGB-D or 7-Scenes folder, or a ROS 2 bag (an .mcap file
-    /// or its rosbag2 folder; the camera's frames are extracted once into a temporary folder).
+    /// Play a recorded sequence: a TUM RGB-D or 7-Scenes folder, a ROS 1 bag, or a ROS 2 bag
+    /// (an .mcap or .db3 file or its rosbag2 folder); a bag's camera frames are extracted once
+    /// into a temporary folder.
     Play {
         /// The sequence's folder, or the bag.
         dir: PathBuf,
@@ -219,7 +220,7 @@ async fn main() -> anyhow::Result<()> {
                 }
                 None if topics != BagTopics::default() => {
                     anyhow::bail!(
-                        "{} is not a ROS 2 bag: the topic flags are for bags",
+                        "{} is not a ROS bag: the topic flags are for bags",
                         dir.display()
                     )
                 }

@@ -72,7 +72,7 @@ enum Command {
         #[arg(long, default_value = "subpixel", value_parser = parse_refinement)]
         refinement: CornerRefinement,
     },
-    /// Run a recorded or simulated sequence (TUM RGB-D or 7-Scenes layout, or a ROS 2 bag)
+    /// Run a recorded or simulated sequence (TUM RGB-D or 7-Scenes layout, or a ROS 1 or ROS 2 bag)
     /// through the frame pipeline without the network, and write the tracked trajectory.
     Offline {
         dataset: PathBuf,
