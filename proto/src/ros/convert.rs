@@ -39,6 +39,8 @@ pub enum RosError {
     CompressedDepth { format: String, message: String },
     #[error("compressedDepth image: {0}")]
     Png(#[from] Png16Error),
+    #[error("compressedDepth RVL image: {0}")]
+    Rvl(#[from] super::rvl::RosRvlError),
     #[error("camera info: {0}")]
     Camera(String),
 }
@@ -164,8 +166,8 @@ pub fn depth(image: &Image) -> Result<Depth16, RosError> {
 
 /// A `CompressedImage` from `compressed_depth_image_transport` in millimetres: a 12-byte
 /// configuration (an `i32` format, then two `f32` quantisation parameters, little-endian) before
-/// a 16-bit PNG. For `16UC1` the PNG holds the depth; for `32FC1` it holds `q = a / z + b`
-/// quantised, so `z = a / (q - b)` and `q = 0` means no depth.
+/// a 16-bit PNG or an RVL stream ([`super::rvl`]). For `16UC1` the image holds the depth; for
+/// `32FC1` it holds `q = a / z + b` quantised, so `z = a / (q - b)` and `q = 0` means no depth.
 pub fn depth_compressed(image: &CompressedImage) -> Result<Depth16, RosError> {
     let fail = |message: &str| RosError::CompressedDepth {
         format: image.format.to_owned(),
@@ -176,23 +178,23 @@ pub fn depth_compressed(image: &CompressedImage) -> Result<Depth16, RosError> {
     let Some(codec) = transport.strip_prefix("compressedDepth") else {
         return Err(fail("its format does not name compressedDepth"));
     };
-    match codec.trim() {
-        "" | "png" => {}
-        "rvl" => {
-            return Err(fail(
-                "RVL compressedDepth is not supported yet; publish png",
-            ))
-        }
+    let rvl = match codec.trim() {
+        "" | "png" => false,
+        "rvl" => true,
         _ => return Err(fail("unknown compressedDepth codec")),
-    }
-    let (Some(config), Some(png)) = (image.data.get(..12), image.data.get(12..)) else {
+    };
+    let (Some(config), Some(body)) = (image.data.get(..12), image.data.get(12..)) else {
         return Err(fail("shorter than its 12-byte configuration"));
     };
-    let (width, height) = png16::dimensions(png)?;
-    if width as usize * height as usize > MAX_PIXELS {
-        return Err(RosError::TooLarge { width, height });
-    }
-    let mut depth = png16::decode(png)?;
+    let mut depth = if rvl {
+        super::rvl::decode(body)?
+    } else {
+        let (width, height) = png16::dimensions(body)?;
+        if width as usize * height as usize > MAX_PIXELS {
+            return Err(RosError::TooLarge { width, height });
+        }
+        png16::decode(body)?
+    };
     match encoding.trim() {
         "16UC1" | "mono16" => {}
         "32FC1" => {
@@ -327,13 +329,24 @@ mod tests {
     }
 
     fn compressed_depth() -> Vec<u8> {
-        let png = png16::encode(&[0, 100, 2000, 40000], 2, 2).unwrap();
+        compressed_depth_as("png")
+    }
+
+    /// The quantised inverse depths [0, 100, 2000, 40000] of a 2x2 32FC1 image in `codec`.
+    fn compressed_depth_as(codec: &str) -> Vec<u8> {
+        let values = [0, 100, 2000, 40000];
+        let body = match codec {
+            "rvl" => crate::ros::rvl::encode(&values, 2, 2),
+            _ => png16::encode(&values, 2, 2).unwrap(),
+        };
         let mut data = vec![0; 4];
         data.extend_from_slice(&100f32.to_le_bytes());
         data.extend_from_slice(&(-9f32).to_le_bytes());
-        data.extend_from_slice(&png);
+        data.extend_from_slice(&body);
         let mut w = Writer::new();
-        w.header().string("32FC1; compressedDepth png").bytes(&data);
+        w.header()
+            .string(&format!("32FC1; compressedDepth {codec}"))
+            .bytes(&data);
         w.0
     }
 
@@ -379,13 +392,17 @@ mod tests {
             .data;
         // z = 100 / (q + 9): 100 → 0.9174 m, 2000 → 0.0498 m, 40000 → 2.4994 mm.
         assert_eq!(depth, vec![0, 917, 50, 2]);
+        // The same image in RVL.
+        let rvl = compressed_depth_as("rvl");
+        let rvl = CompressedImage::from_cdr(&rvl).unwrap();
+        assert_eq!(depth_compressed(&rvl).unwrap().data, depth);
     }
 
     proptest! {
         #![proptest_config(ProptestConfig::with_cases(2000))]
         #[test]
         fn changed_bytes_give_errors_or_values_never_panics(
-            which in 0usize..4,
+            which in 0usize..5,
             edits in proptest::collection::vec((any::<prop::sample::Index>(), any::<u8>()), 1..6),
             cut in any::<prop::sample::Index>(),
         ) {
@@ -393,6 +410,7 @@ mod tests {
                 0 => image("rgb8", 4, 3, 3),
                 1 => image("16UC1", 3, 2, 2),
                 2 => info(),
+                3 => compressed_depth_as("rvl"),
                 _ => compressed_depth(),
             };
             for (at, value) in edits {

@@ -5,6 +5,7 @@
 pub mod cdr;
 pub mod convert;
 pub mod messages;
+pub mod rvl;
 pub mod topics;
 
 pub use cdr::{CdrError, Layout};
