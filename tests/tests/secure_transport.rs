@@ -167,3 +167,93 @@ async fn refusals(acl: bool) -> Vec<String> {
     good.close().await.unwrap();
     heard
 }
+
+/// A ROS 2 robot under the access rules: its router's certificate names it, the server's
+/// subscriptions to its topics reach it, and what it puts on them is counted as its input; a
+/// robot of the site with another certificate putting on the same keys is refused by zenoh.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_ros_robot_puts_on_its_topics_only_under_its_own_certificate() {
+    use vsgraphs_proto::ros::MessageType;
+    use vsgraphs_server::config::RosRobotConfig;
+    let dir = tempfile::tempdir().unwrap();
+    let site = dir.path().join("site");
+    let robots = ["ros-cam".to_owned(), "good".to_owned()];
+    certificates::make(&site, &["127.0.0.1".into()], &robots).unwrap();
+    let endpoint = format!("tls/127.0.0.1:{}", free_port());
+    let ros_robot = RosRobotConfig {
+        id: "ros-cam".into(),
+        colour: "/cam/image_raw".into(),
+        depth: "/cam/depth/image_raw".into(),
+        camera_info: "/cam/camera_info".into(),
+        ..RosRobotConfig::default()
+    };
+    let colour_key =
+        ros_robot
+            .key_format()
+            .publication(&ros_robot.colour, MessageType::Image, "RIHS01_0");
+    let configured = ros_robot.clone();
+    let test = TestServer::start_with(|c| {
+        c.zenoh.listen = vec![endpoint.clone()];
+        c.zenoh.tls = TlsSettings {
+            mutual: true,
+            ..tls(&site, "ca.pem", Some("server"))
+        };
+        c.ingest.allowed_robots = robots.to_vec();
+        c.ros.robots = vec![configured];
+    })
+    .await;
+    let session = |certificate: &str| {
+        let settings = vsgraphs_sdk::zenoh_config::ZenohSettings {
+            connect: vec![endpoint.clone()],
+            multicast_scouting: false,
+            tls: tls(&site, "ca.pem", Some(certificate)),
+            ..Default::default()
+        };
+        async move { zenoh::open(settings.to_config().unwrap()).await.unwrap() }
+    };
+    let rejected = || async {
+        let status = test.client.robot("ros-cam").await.ok()?;
+        status.frames.rejected_by_reason.get("ros_message").copied()
+    };
+    let garbage = b"\x00\x01\x00\x00not an image".to_vec();
+
+    // The ROS robot's router: the server's subscription reaches it, its messages reach ingest.
+    let robot = session("robot-ros-cam").await;
+    let publisher = robot.declare_publisher(colour_key.clone()).await.unwrap();
+    wait_for(
+        "the server's subscription",
+        Duration::from_secs(20),
+        || async {
+            publisher
+                .matching_status()
+                .await
+                .unwrap()
+                .matching()
+                .then_some(())
+        },
+    )
+    .await;
+    publisher.put(garbage.clone()).await.unwrap();
+    wait_for("the first message", Duration::from_secs(20), || async {
+        rejected().await.filter(|&n| n == 1)
+    })
+    .await;
+
+    // Another robot of the site puts on the ROS robot's key: zenoh refuses it.
+    let impostor = session("robot-good").await;
+    let _ = impostor.put(colour_key.clone(), garbage.clone()).await;
+    publisher.put(garbage.clone()).await.unwrap();
+    wait_for("the second message", Duration::from_secs(20), || async {
+        rejected().await.filter(|&n| n >= 2)
+    })
+    .await;
+    tokio::time::sleep(Duration::from_millis(500)).await;
+    assert_eq!(
+        rejected().await,
+        Some(2),
+        "the impostor's message was refused"
+    );
+    impostor.close().await.unwrap();
+    robot.close().await.unwrap();
+    test.server.stop().await.unwrap();
+}

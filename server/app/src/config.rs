@@ -371,13 +371,22 @@ impl Config {
                 );
             }
         }
-        if !self.ros.robots.is_empty() && !self.ingest.allowed_robots.is_empty() {
-            return invalid(
-                "ros.robots",
-                "ROS 2 robots cannot be combined with [ingest] allowed_robots yet: zenoh's \
-                 access rules name vsgraphs' own keys only"
-                    .into(),
-            );
+        if !self.ingest.allowed_robots.is_empty() {
+            if let Some(robot) = self
+                .ros
+                .robots
+                .iter()
+                .find(|r| !self.ingest.allowed_robots.contains(&r.id))
+            {
+                return invalid(
+                    "ros.robots",
+                    format!(
+                        "robot {:?} is not in [ingest] allowed_robots: under mutual TLS's access \
+                         rules every robot, ROS ones too, needs a certificate under its id",
+                        robot.id
+                    ),
+                );
+            }
         }
         self.pipeline().validate()?;
         if let Err(e) = self.zenoh.to_config() {
@@ -511,6 +520,17 @@ mod tests {
             .unwrap_err()
             .to_string()
             .contains("compressedDepth"));
+        // Under the access rules every ROS robot needs its certificate.
+        std::fs::write(
+            &path,
+            "[ingest]\nallowed_robots = [\"a\"]\n[zenoh.tls]\nmutual = true\n[[ros.robots]]\nid = \"b\"\n",
+        )
+        .unwrap();
+        let message = Config::load(&path).unwrap_err().to_string();
+        assert!(
+            message.contains("\"b\"") && message.contains("allowed_robots"),
+            "{message}"
+        );
         // The RealSense driver's topics by default.
         std::fs::write(&path, "[[ros.robots]]\nid = \"bot\"\ndomain_id = 7\n").unwrap();
         let ros = Config::load(&path).unwrap().ros;

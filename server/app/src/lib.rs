@@ -108,7 +108,7 @@ impl Server {
             )
             .map_err(|e| anyhow::anyhow!("zenoh message size: {e}"))?;
         if !config.ingest.allowed_robots.is_empty() {
-            let rules = zenoh_access::rules(&config.ingest.allowed_robots)?;
+            let rules = zenoh_access::rules(&config.ingest.allowed_robots, &config.ros.robots)?;
             zenoh_config
                 .insert_json5("access_control", &rules.to_string())
                 .map_err(|e| anyhow::anyhow!("zenoh access control: {e}"))?;

@@ -3,7 +3,13 @@
 //! ([`crate::certificates`]); anything else a peer sends is refused by zenoh before it reaches
 //! ingest. The server's own declarations (its subscriptions, its liveliness) go out to every
 //! robot, and every robot may watch the server's liveliness.
+//!
+//! A ROS 2 robot of `[[ros.robots]]` (its router or bridge holding the certificate named as the
+//! robot) may also put messages on its three topics' keys and declare the liveliness tokens of
+//! their publishers, and the server's subscriptions to those keys go out to it.
 
+use crate::config::RosRobotConfig;
+use crate::ingest::ros;
 use serde_json::{json, Value};
 use vsgraphs_proto::keys;
 
@@ -20,8 +26,9 @@ const MESSAGES: [&str; 9] = [
     "liveliness_query",
 ];
 
-/// The `access_control` section of the server's zenoh configuration for `robots`.
-pub fn rules(robots: &[String]) -> anyhow::Result<Value> {
+/// The `access_control` section of the server's zenoh configuration for `robots`, of which
+/// `ros_robots` are ROS 2 robots.
+pub fn rules(robots: &[String], ros_robots: &[RosRobotConfig]) -> anyhow::Result<Value> {
     let mut rules = vec![json!({
         "id": "server to robots",
         "permission": "allow",
@@ -51,10 +58,44 @@ pub fn rules(robots: &[String]) -> anyhow::Result<Value> {
             "key_exprs": [keys::robot(id)],
         }));
         subjects.push(json!({ "id": subject, "cert_common_names": [id] }));
+        let mut allowed = vec![
+            json!(rule),
+            json!("server to robots"),
+            json!("robots watch the server"),
+        ];
+        if let Some(ros_robot) = ros_robots.iter().find(|r| &r.id == id) {
+            let topics = ros::key_expressions(ros_robot);
+            let (to_server, to_robot) = (
+                format!("{rule}: ROS topics"),
+                format!("{rule}: ROS subscriptions"),
+            );
+            rules.push(json!({
+                "id": to_server,
+                "permission": "allow",
+                "flows": ["ingress"],
+                "messages": ["put", "liveliness_token"],
+                "key_exprs": topics,
+            }));
+            rules.push(json!({
+                "id": to_robot,
+                "permission": "allow",
+                "flows": ["egress"],
+                "messages": ["declare_subscriber", "declare_liveliness_subscriber", "liveliness_query"],
+                "key_exprs": topics,
+            }));
+            allowed.extend([json!(to_server), json!(to_robot)]);
+        }
         policies.push(json!({
-            "rules": [rule, "server to robots", "robots watch the server"],
+            "rules": allowed,
             "subjects": [subject],
         }));
+    }
+    if let Some(stray) = ros_robots.iter().find(|r| !robots.contains(&r.id)) {
+        anyhow::bail!(
+            "ROS robot {:?} is not in [ingest] allowed_robots: under the access rules each robot \
+             needs a certificate under its id",
+            stray.id
+        );
     }
     Ok(json!({
         "enabled": true,

@@ -126,6 +126,32 @@ fn image_type(topic: &str) -> MessageType {
     MessageType::of_image_topic(topic)
 }
 
+/// The key expressions of a robot's topics, and (rmw_zenoh) of its colour publisher's
+/// liveliness token: what it may send, for the access rules.
+pub fn key_expressions(robot: &RosRobotConfig) -> Vec<String> {
+    let format = robot.key_format();
+    let mut keys = vec![
+        format.subscription(&robot.colour, image_type(&robot.colour)),
+        format.subscription(&robot.depth, image_type(&robot.depth)),
+        format.subscription(&robot.camera_info, MessageType::CameraInfo),
+    ];
+    if let vsgraphs_proto::ros::KeyFormat::RmwZenoh { domain_id } = format {
+        keys.push(publisher_token(robot, domain_id));
+    }
+    keys
+}
+
+/// rmw_zenoh's liveliness tokens of the colour topic's publishers (`@ros2_lv/<domain>/
+/// <session>/<node>/<entity>/MP/<enclave>/<namespace>/<node name>/<topic with '/' as '%'>/
+/// <type>/<hash>/<qos>`).
+fn publisher_token(robot: &RosRobotConfig, domain_id: u32) -> String {
+    format!(
+        "@ros2_lv/{domain_id}/*/*/*/MP/*/*/*/{}/{}/**",
+        robot.colour.replace('/', "%"),
+        image_type(&robot.colour).dds_name()
+    )
+}
+
 /// zenoh's callback for one topic: the bytes go to the robot's thread, or are dropped (and a
 /// colour image counted as a dropped frame) when it is behind.
 fn queue_message(
@@ -150,20 +176,14 @@ fn queue_message(
     }
 }
 
-/// The robot's presence from rmw_zenoh's liveliness token of its colour topic's publisher
-/// (`@ros2_lv/<domain>/<session>/<node>/<entity>/MP/<enclave>/<namespace>/<node name>/
-/// <topic with '/' as '%'>/<type>/<hash>/<qos>`).
+/// The robot's presence from rmw_zenoh's liveliness token of its colour topic's publisher.
 async fn watch_publisher(
     session: &zenoh::Session,
     workers: &Arc<Workers>,
     robot: &RosRobotConfig,
     domain_id: u32,
 ) -> zenoh::Result<zenoh::pubsub::Subscriber<()>> {
-    let mangled = robot.colour.replace('/', "%");
-    let key = format!(
-        "@ros2_lv/{domain_id}/*/*/*/MP/*/*/*/{mangled}/{}/**",
-        image_type(&robot.colour).dds_name()
-    );
+    let key = publisher_token(robot, domain_id);
     let (workers, robot_id) = (workers.clone(), robot.id.clone());
     session
         .liveliness()
