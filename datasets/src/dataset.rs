@@ -78,11 +78,20 @@ pub fn open(root: &Path) -> Result<Dataset, DatasetError> {
 /// Opens a ROS 2 bag's camera frames, extracted once into a folder (see [`crate::rosbag`]).
 /// The notes say when it was extracted, and how many unreadable messages were skipped.
 pub fn open_bag(bag: &Path, topics: &crate::rosbag::BagTopics) -> Result<Dataset, DatasetError> {
+    open_bag_with_progress(bag, topics, &mut |_| {})
+}
+
+/// [`open_bag`], telling `on_colour` how many colour images an extraction has written so far.
+pub fn open_bag_with_progress(
+    bag: &Path,
+    topics: &crate::rosbag::BagTopics,
+    on_colour: &mut dyn FnMut(usize),
+) -> Result<Dataset, DatasetError> {
     let dir = crate::rosbag::frames_dir(bag, topics)?;
     let extracted = if dir.join("rgb.txt").is_file() {
         None
     } else {
-        Some(crate::rosbag::extract(bag, topics, &dir)?)
+        Some(crate::rosbag::extract(bag, topics, &dir, on_colour)?)
     };
     let mut dataset = open_tum(&dir)?;
     if let Some(extracted) = extracted {

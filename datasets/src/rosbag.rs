@@ -575,8 +575,14 @@ enum Role {
     CameraInfo,
 }
 
-/// Extracts the camera's frames of `bag` into `out` as a TUM RGB-D folder.
-pub fn extract(bag: &Path, given: &BagTopics, out: &Path) -> Result<Extracted, DatasetError> {
+/// Extracts the camera's frames of `bag` into `out` as a TUM RGB-D folder; `on_colour` hears
+/// the count of colour images written so far (a long recording takes minutes).
+pub fn extract(
+    bag: &Path,
+    given: &BagTopics,
+    out: &Path,
+    on_colour: &mut dyn FnMut(usize),
+) -> Result<Extracted, DatasetError> {
     let all = topics(bag)?;
     let (colour_topic, depth_topic, info_topic) = choose(bag, given, &all)?;
     let layout = if is_ros1(bag) {
@@ -632,7 +638,10 @@ pub fn extract(bag: &Path, given: &BagTopics, out: &Path) -> Result<Extracted, D
                     frame_id,
                     ext,
                     bytes,
-                }) => colour.write(&part, stamp_ns, frame_id, ext, &bytes)?,
+                }) => {
+                    colour.write(&part, stamp_ns, frame_id, ext, &bytes)?;
+                    on_colour(colour.lines.len());
+                }
                 Ok(Item::Depth {
                     stamp_ns,
                     frame_id,
@@ -835,7 +844,7 @@ mod tests {
         let out = dir.path().join("out");
         let garbage = dir.path().join("garbage.db3");
         fs::write(&garbage, b"not a database, though named like one").unwrap();
-        let error = extract(&garbage, &BagTopics::default(), &out)
+        let error = extract(&garbage, &BagTopics::default(), &out, &mut |_| {})
             .unwrap_err()
             .to_string();
         assert!(
@@ -848,7 +857,7 @@ mod tests {
             .unwrap()
             .execute_batch("CREATE TABLE other (x INTEGER);")
             .unwrap();
-        let error = extract(&empty, &BagTopics::default(), &out)
+        let error = extract(&empty, &BagTopics::default(), &out, &mut |_| {})
             .unwrap_err()
             .to_string();
         assert!(error.contains("no such table: topics"), "{error}");

@@ -75,8 +75,12 @@ fn bag_plays_as_the_folder(test: &str, extension: &str, corrupt: bool) {
     };
     assert!(bag_file.is_file(), "{}", bag_file.display());
 
-    // The rosbag2 folder opens as a dataset; its frames are extracted once.
-    let bag = dataset::open(&bag_dir).unwrap();
+    // The bag opens as a dataset, its frames extracted once, counted as they are.
+    let mut counted = Vec::new();
+    let bag =
+        dataset::open_bag_with_progress(&bag_file, &BagTopics::default(), &mut |n| counted.push(n))
+            .unwrap();
+    assert_eq!(counted, (1..=FRAMES).collect::<Vec<_>>());
     assert!(
         bag.warnings.iter().any(|w| w.contains("extracted")),
         "{:?}",

@@ -215,8 +215,18 @@ async fn main() -> anyhow::Result<()> {
             };
             let dataset = match vsgraphs_datasets::rosbag::bag_file(&dir) {
                 Some(bag) => {
-                    eprintln!("reading the camera's frames of {}", bag.display());
-                    dataset::open_bag(&bag, &topics)
+                    // A first play extracts the camera's frames: minutes for a long recording.
+                    let spinner = ProgressBar::new_spinner()
+                        .with_message(format!("reading the camera's frames of {}", bag.display()));
+                    spinner.set_style(
+                        ProgressStyle::with_template("{spinner} {msg}: {pos} frames ({elapsed})")
+                            .expect("a valid template"),
+                    );
+                    let opened = dataset::open_bag_with_progress(&bag, &topics, &mut |n| {
+                        spinner.set_position(n as u64);
+                    });
+                    spinner.finish_and_clear();
+                    opened
                 }
                 None if topics != BagTopics::default() => {
                     anyhow::bail!(
