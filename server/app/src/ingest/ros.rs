@@ -37,8 +37,9 @@ pub const UNREADABLE: &str = "ros_message";
 pub const UNPAIRED: &str = "ros_unpaired";
 pub const NO_CAMERA_INFO: &str = "ros_no_camera_info";
 
+/// Which of a robot's topics a message came on.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
-enum Topic {
+pub enum Topic {
     Colour,
     Depth,
     CameraInfo,
@@ -210,7 +211,7 @@ fn run(
     workers: &Arc<Workers>,
     stop: &AtomicBool,
 ) {
-    let mut robot = RosRobot::new(config);
+    let mut robot = FrameAssembler::new(config);
     loop {
         let arrived = match messages.recv_timeout(Duration::from_millis(250)) {
             Ok(arrived) => arrived,
@@ -241,10 +242,11 @@ fn reject(robot: &RobotEntry, reason: &str, message: String) {
 }
 
 /// A refusal: its reason code and what was wrong.
-type Refusal = (&'static str, String);
+pub type Refusal = (&'static str, String);
 
-/// One ROS robot's state: its images waiting for a pair, its camera, its frame count.
-struct RosRobot {
+/// One ROS robot's messages made frames: its images waiting for a pair, its camera, its frame
+/// count.
+pub struct FrameAssembler {
     id: String,
     colour_topic: String,
     depth_topic: String,
@@ -257,8 +259,8 @@ struct RosRobot {
     sequence: u64,
 }
 
-impl RosRobot {
-    fn new(config: &RosRobotConfig) -> Self {
+impl FrameAssembler {
+    pub fn new(config: &RosRobotConfig) -> Self {
         Self {
             id: config.id.clone(),
             colour_topic: config.colour.clone(),
@@ -273,7 +275,7 @@ impl RosRobot {
     }
 
     /// Takes one message; returns the frames it completed and what it refused.
-    fn take(&mut self, topic: Topic, bytes: &[u8]) -> Vec<Result<RgbdFrame, Refusal>> {
+    pub fn take(&mut self, topic: Topic, bytes: &[u8]) -> Vec<Result<RgbdFrame, Refusal>> {
         let (stream, message_type, name) = match topic {
             Topic::CameraInfo => {
                 return match CameraInfo::from_cdr(bytes)
