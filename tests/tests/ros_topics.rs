@@ -2,7 +2,8 @@
 //! a RealSense driver's topics (`ros/make_bag.py`), are put over real zenoh on the keys rmw_zenoh
 //! or zenoh-bridge-ros2dds would use, with rmw_zenoh's attachment, and the server maps them with
 //! the trajectory the folder gives (which `live_tracking` shows `vsgraphs-robot play` gives).
-//! Bad messages are refused with their reason and counted.
+//! Bad messages (not CDR, larger than a frame may be, before any camera info) are refused with
+//! their reason and counted.
 
 use std::path::{Path, PathBuf};
 use std::process::Command;
@@ -149,6 +150,8 @@ async fn ros_robot_tracks_like_the_folder(test: &str, raw: bool, keys: RosKeys) 
     let test = TestServer::start_with(move |config| {
         // Every frame is needed for the comparison.
         config.ingest.queue_capacity = FRAMES + 2;
+        // Above the frames' size (under 1 MB, raw), below the oversized message sent below.
+        config.ingest.max_frame_bytes = 1 << 20;
         config.ros.robots = vec![configured];
     })
     .await;
@@ -240,11 +243,12 @@ async fn ros_robot_tracks_like_the_folder(test: &str, raw: bool, keys: RosKeys) 
             .unwrap()
     };
     put(&colour_topic, b"\x00\x01\x00\x00garbage".to_vec()).await;
+    put(&colour_topic, vec![0; 3 << 19]).await;
     put(&colour_topic, a_second_earlier(&first_of(&colour_topic))).await;
     put(&depth_topic, a_second_earlier(&first_of(&depth_topic))).await;
-    let refused = wait_for("two refusals", Duration::from_secs(30), || status(2, 0)).await;
+    let refused = wait_for("three refusals", Duration::from_secs(30), || status(3, 0)).await;
     let by_reason = &refused.frames.rejected_by_reason;
-    assert_eq!(by_reason.get("ros_message"), Some(&1), "{by_reason:?}");
+    assert_eq!(by_reason.get("ros_message"), Some(&2), "{by_reason:?}");
     assert_eq!(
         by_reason.get("ros_no_camera_info"),
         Some(&1),
@@ -261,7 +265,7 @@ async fn ros_robot_tracks_like_the_folder(test: &str, raw: bool, keys: RosKeys) 
         if topic == &depth_topic {
             frames += 1;
             wait_for("the frame processed", Duration::from_secs(60), || {
-                status(2, frames)
+                status(3, frames)
             })
             .await;
         }

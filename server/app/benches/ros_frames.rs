@@ -124,7 +124,7 @@ fn frames(c: &mut Criterion) {
             ..RosRobotConfig::default()
         };
         let mut assembler = FrameAssembler::new(&config);
-        assert!(assembler.take(Topic::CameraInfo, &camera_info()).is_empty());
+        assert!(assembler.take(Topic::CameraInfo, camera_info()).is_empty());
         // Messages made once, stamped 1/30 s apart in a cycle (stamps must increase).
         let messages: Vec<(Vec<u8>, Vec<u8>)> = (0..64u64)
             .map(|i| {
@@ -142,8 +142,9 @@ fn frames(c: &mut Criterion) {
                 }
                 let (c, d) = &messages[i];
                 i += 1;
-                assert!(assembler.take(Topic::Colour, c).is_empty());
-                let mut frames = assembler.take(Topic::Depth, d);
+                // The bytes as zenoh hands them over: owned by the assembler from then on.
+                assert!(assembler.take(Topic::Colour, c.clone()).is_empty());
+                let mut frames = assembler.take(Topic::Depth, d.clone());
                 let frame = frames.pop().expect("a pair").expect("a frame");
                 black_box(frame.encode_to_vec())
             })

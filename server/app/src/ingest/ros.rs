@@ -26,9 +26,10 @@ use vsgraphs_proto::{
 };
 use zenoh::sample::SampleKind;
 
-/// Messages waiting for a robot's ROS thread; beyond it zenoh's callback drops them (the thread
-/// only parses and copies, so it keeps up unless the machine cannot).
-const MESSAGES_WAITING: usize = 32;
+/// Messages waiting for a robot's ROS thread (four frames of three topics); beyond it zenoh's
+/// callback drops them (the thread only parses and copies, so it keeps up unless the machine
+/// cannot). Each is at most `[ingest] max_frame_bytes`.
+const MESSAGES_WAITING: usize = 12;
 /// Images of one stream waiting for their pair: a quarter of a second at 30 Hz.
 const PAIRING_CAPACITY: usize = 8;
 
@@ -162,7 +163,20 @@ fn queue_message(
     robot_id: &str,
 ) -> impl Fn(zenoh::sample::Sample) + Send + Sync + 'static {
     let (workers, robot_id) = (workers.clone(), robot_id.to_owned());
+    let max_bytes = workers.config.ingest.max_frame_bytes;
     move |sample| {
+        // Refused before it is copied: a message no frame could come from.
+        let len = sample.payload().len();
+        if len > max_bytes {
+            if let Some(robot) = workers.robot(&robot_id) {
+                reject(
+                    &robot,
+                    UNREADABLE,
+                    format!("a {topic:?} message of {len} bytes; frames may have {max_bytes}"),
+                );
+            }
+            return;
+        }
         let arrived = Arrived {
             topic,
             bytes: sample.payload().to_bytes().into_owned(),
@@ -222,7 +236,7 @@ fn run(
             // The robots' table is full; the registry counts the refusal.
             continue;
         };
-        for outcome in robot.take(arrived.topic, &arrived.bytes) {
+        for outcome in robot.take(arrived.topic, arrived.bytes) {
             match outcome {
                 Ok(frame) => workers.enqueue(&entry, frame.encode_to_vec()),
                 Err((reason, message)) => reject(&entry, reason, message),
@@ -275,10 +289,10 @@ impl FrameAssembler {
     }
 
     /// Takes one message; returns the frames it completed and what it refused.
-    pub fn take(&mut self, topic: Topic, bytes: &[u8]) -> Vec<Result<RgbdFrame, Refusal>> {
+    pub fn take(&mut self, topic: Topic, bytes: Vec<u8>) -> Vec<Result<RgbdFrame, Refusal>> {
         let (stream, message_type, name) = match topic {
             Topic::CameraInfo => {
-                return match CameraInfo::from_cdr(bytes)
+                return match CameraInfo::from_cdr(&bytes)
                     .map_err(RosError::from)
                     .and_then(|info| convert::camera(&info))
                 {
@@ -292,11 +306,11 @@ impl FrameAssembler {
             Topic::Colour => (Stream::Colour, self.colour_type, &self.colour_topic),
             Topic::Depth => (Stream::Depth, self.depth_type, &self.depth_topic),
         };
-        let stamp_ns = match stamp(bytes, message_type) {
+        let stamp_ns = match stamp(&bytes, message_type) {
             Ok(stamp_ns) => stamp_ns,
             Err(e) => return vec![Err((UNREADABLE, format!("{name}: {e}")))],
         };
-        let settled = self.pairing.push(stream, stamp_ns, bytes.to_vec());
+        let settled = self.pairing.push(stream, stamp_ns, bytes);
         let mut outcomes: Vec<_> = settled
             .unpaired
             .into_iter()
