@@ -84,6 +84,8 @@ pub struct ScenarioRun {
     pub untracked: usize,
     pub maps: usize,
     pub keyframes: usize,
+    /// Keyframes of the scored map culled as redundant (not in `keyframes`).
+    pub keyframes_culled: usize,
     pub markers: usize,
     /// Tracking events with the frame's time, seconds.
     pub events: Vec<(f64, String)>,
@@ -333,6 +335,7 @@ pub fn run(
         untracked: summary.untracked,
         maps: summary.maps,
         keyframes: summary.keyframes,
+        keyframes_culled: last_view.map_or(0, |v| v.keyframes.iter().filter(|k| k.culled).count()),
         markers: summary.markers,
         events: summary.events.clone(),
         median_ms: medians(&summary),
