@@ -1,8 +1,8 @@
 //! A robot that walks the same route again and again (a patrol) maps nothing new after the
 //! first round: its map, and so the server's memory, stops growing with time. seq06's first
 //! frames are played three times in one session, each round after a jump back to the start (as
-//! the soak's robots loop their walks); the map's keyframes and points after the second and
-//! third rounds are those after the first.
+//! the soak's robots loop their walks); the map's keyframes, points and loops after the second
+//! and third rounds are those after the first.
 
 use vsgraphs_pipeline::offline::{self, FrameSource, OfflineFrame};
 use vsgraphs_pipeline::{MapService, PipelineConfig};
@@ -50,7 +50,7 @@ fn a_walk_played_again_adds_nothing_to_its_map() {
         dictionary: None,
         maps: Some(&service),
     };
-    // (keyframes, points) of every map at the end of each round.
+    // (keyframes, points, loops) of every map at the end of each round.
     let mut sizes = Vec::new();
     let (summary, _) = offline::run_frames(&config, source, played, |done, _| {
         if done % ROUND == 0 {
@@ -58,14 +58,14 @@ fn a_walk_played_again_adds_nothing_to_its_map() {
             sizes.push(
                 views
                     .iter()
-                    .map(|v| (v.keyframe_count, v.point_count))
+                    .map(|v| (v.keyframe_count, v.point_count, v.loop_count))
                     .collect::<Vec<_>>(),
             );
         }
     })
     .unwrap();
     eprintln!(
-        "{} frames, {} tracked, maps {}; keyframes and points per round: {sizes:?}",
+        "{} frames, {} tracked, maps {}; keyframes, points and loops per round: {sizes:?}",
         summary.frames, summary.tracked, summary.maps
     );
     assert_eq!(sizes.len(), ROUNDS);
