@@ -615,9 +615,20 @@ const RANSAC_SEED: u64 = 0x5EED;
 const RANSAC_POINT_ERROR_M: f64 = 0.05;
 const MIN_FIT_POINTS: usize = 6;
 
+/// Whether `position` lies on one of `map`'s markers: within a marker's side of its centre
+/// (its printed square reaches 0.71 sides out, corners of its border a little more). Such
+/// points are the marker's own pattern, which every print of its id repeats, so they cannot
+/// confirm that a shared id marks one place: only the scene around it can.
+fn on_a_marker(map: &Map, position: &Vector3<f64>) -> bool {
+    map.markers
+        .values()
+        .any(|m| (position - m.world_from_marker.translation).norm() <= m.side_m)
+}
+
 /// Pairs of 3-D positions of one place in both maps, `(target, source)`: the source's points
-/// near the markers `near`, moved by `transform` into the target's keyframes that saw those
-/// markers, matched by descriptor to keypoints with depth there (back-projected).
+/// near the markers `near` (not on a marker: [`on_a_marker`]), moved by `transform` into the
+/// target's keyframes that saw those markers, matched by descriptor to keypoints with depth
+/// there (back-projected).
 fn point_pairs(
     target: &Map,
     source: &Map,
@@ -637,7 +648,11 @@ fn point_pairs(
             .points
             .iter()
             .enumerate()
-            .filter(|(_, p)| !p.bad && (p.position - centre).norm() <= POINTS_AROUND_MARKER_M)
+            .filter(|(_, p)| {
+                !p.bad
+                    && (p.position - centre).norm() <= POINTS_AROUND_MARKER_M
+                    && !on_a_marker(source, &p.position)
+            })
             .map(|(i, _)| i)
             .collect();
         let mut keyframes: Vec<KeyFrameId> = t
@@ -1103,9 +1118,20 @@ mod tests {
     /// middle, seen by one keyframe from `camera` (building frame) into a map whose frame is
     /// `building_from_map` away; `descriptor_seed` names the points' texture.
     fn wall_map(camera: &Se3, building_from_map: &Se3, descriptor_seed: u64) -> Map {
+        marked_wall_map(camera, building_from_map, descriptor_seed, false)
+    }
+
+    /// [`wall_map`], with 36 corners of marker 10's printed pattern as points too when
+    /// `pattern` (the same descriptors in every map: every print of an id looks alike).
+    fn marked_wall_map(
+        camera: &Se3,
+        building_from_map: &Se3,
+        descriptor_seed: u64,
+        pattern: bool,
+    ) -> Map {
         use crate::triangulation::tests::{frame_of, Depth};
         let rig = rig();
-        let wall: Vec<(Vector3<f64>, u64, Depth)> = (0..80)
+        let mut wall: Vec<(Vector3<f64>, u64, Depth)> = (0..80)
             .map(|i| {
                 let (x, y) = ((i % 10) as f64 * 0.22 - 1.0, (i / 10) as f64 * 0.18 - 0.65);
                 (
@@ -1114,7 +1140,18 @@ mod tests {
                     Depth::Measured,
                 )
             })
+            .filter(|(p, _, _)| !pattern || (p.x - 0.05).hypot(p.y - 0.02) > 0.2)
             .collect();
+        if pattern {
+            wall.extend((0..36).map(|i| {
+                let (x, y) = ((i % 6) as f64 * 0.032 - 0.03, (i / 6) as f64 * 0.032 - 0.06);
+                (
+                    Vector3::new(x, y, 2.99),
+                    900_000 + i as u64,
+                    Depth::Measured,
+                )
+            }));
+        }
         let (frame, _) = frame_of(&rig, camera, &wall);
         let map_from_building = building_from_map.inverse();
         let mut map = Map {
@@ -1182,6 +1219,30 @@ mod tests {
         source.markers.insert(11, eleven);
         let alignment = align_by_markers(&target, &source).unwrap();
         assert_eq!(alignment.markers, vec![10, 11]);
+    }
+
+    /// Two sites marked from one dictionary: marker 10 on a wall of each, the walls unalike.
+    /// The marker's own pattern gives points that match across the maps wherever the id is
+    /// printed; they are not the place's, and do not confirm it.
+    #[test]
+    fn a_markers_own_pattern_does_not_confirm_a_place() {
+        let beside = Se3::new(
+            UnitQuaternion::from_euler_angles(0.0, 0.1, 0.0),
+            Vector3::new(0.3, 0.0, 0.1),
+        );
+        let target = marked_wall_map(&Se3::identity(), &Se3::identity(), 1000, true);
+        let elsewhere = marked_wall_map(&beside, &transform(), 5000, true);
+        assert!(matches!(
+            align_by_markers(&target, &elsewhere),
+            Err(NoAlignment::Unconfirmed { marker: 10, .. })
+        ));
+        // The same wall around it confirms it.
+        let here = marked_wall_map(&beside, &transform(), 1000, true);
+        let alignment = align_by_markers(&target, &here).unwrap();
+        assert_eq!(alignment.markers, vec![10]);
+        assert!(alignment.point_inliers >= MIN_POINT_INLIERS);
+        let error = alignment.target_from_source.compose(&transform().inverse());
+        assert!(error.translation.norm() < 0.01, "{error:?}");
     }
 
     #[test]
