@@ -16,7 +16,7 @@
 
 use crate::frame::Rig;
 use crate::map::{KeyFrameId, LoopEdge, Map, MapMarker, MapPointId};
-use crate::matcher::{search_by_projection, Projected, SearchOptions, TH_HIGH};
+use crate::matcher::{search_by_projection, Projected, SearchOptions, TH_HIGH, TH_LOW};
 use crate::rigid::{ransac_rigid, rigid_fit, Pair};
 use nalgebra::Vector3;
 use vsgraphs_optim::Se3;
@@ -455,7 +455,7 @@ pub fn align_by_place(target: &Map, source: &Map, place: &Place) -> Result<Align
             &points,
             &keyframes,
             &place.target_from_source,
-            POINT_WINDOW_PX,
+            NARROW,
             &mut taken,
             &mut pairs,
         );
@@ -538,7 +538,7 @@ fn from_points(
     near: &[i32],
     transform: &Se3,
 ) -> Option<Se3> {
-    let wide: Vec<Pair> = point_pairs(target, source, rig, near, transform, WIDE_WINDOW_PX)
+    let wide: Vec<Pair> = point_pairs(target, source, rig, near, transform, WIDE)
         .iter()
         .map(SeamMatch::pair)
         .filter(|(to, from)| (to - transform.transform_point(from)).norm() <= WIDE_POINT_ERROR_M)
@@ -572,7 +572,7 @@ fn confirm(
     near: &[i32],
     fit: &Se3,
 ) -> (Se3, Vec<SeamMatch>) {
-    let narrow = point_pairs(target, source, rig, near, fit, POINT_WINDOW_PX);
+    let narrow = point_pairs(target, source, rig, near, fit, NARROW);
     let (refit, confirming) = refit_within(&narrow, fit);
     tracing::debug!(
         narrow = narrow.len(),
@@ -600,13 +600,37 @@ fn refit_within(pairs: &[SeamMatch], fit: &Se3) -> (Se3, Vec<SeamMatch>) {
     (refit, within(&refit))
 }
 
-/// Source points within this distance of a marker are looked for, metres (a room's wall).
+/// Source points within this distance of a marker, on the wall that carries it (within
+/// [`MAX_POINT_ERROR_M`] of its plane), are looked for, metres (a room's wall). Floors and
+/// ceilings are left out: tiles and panels repeat within a building and between buildings, so
+/// their corners match wherever a marker is mounted at the same height, and would confirm an id
+/// printed in two places.
 const POINTS_AROUND_MARKER_M: f64 = 3.0;
-/// Search windows for a source point's projection, pixels at its level: the first pass's
-/// (the transform from markers alone) and the second's (from points), and how far from where
-/// the markers put it a first-pass pair may lie, metres.
-const WIDE_WINDOW_PX: f64 = 20.0;
-const POINT_WINDOW_PX: f64 = 5.0;
+/// How a source point is looked for in a target keyframe: a window around its projection,
+/// pixels at its level, and the largest descriptor distance of a match.
+#[derive(Clone, Copy, Debug)]
+struct Search {
+    window_px: f64,
+    max_distance: u32,
+}
+
+/// The first pass, from the transform markers alone give: a wide window, ORB-SLAM's lenient
+/// threshold; RANSAC sorts the pairs.
+const WIDE: Search = Search {
+    window_px: 20.0,
+    max_distance: TH_HIGH,
+};
+/// The pass that confirms a transform: a narrow window and ORB-SLAM's strict threshold. On a
+/// wall, a point put within a few pixels of a keypoint is within centimetres of it in 3-D
+/// whatever the transform, so the 3-D check adds little and the descriptor must: with the
+/// lenient threshold the generic corners of a busy wall (dots, bars, edges of posters) match
+/// within the window as often as not, and an id printed in two buildings was confirmed by
+/// 98 such points.
+const NARROW: Search = Search {
+    window_px: 5.0,
+    max_distance: TH_LOW,
+};
+/// How far from where the markers put it a first-pass pair may lie, metres.
 const WIDE_POINT_ERROR_M: f64 = 0.3;
 /// RANSAC of the first pass: samples, seed, inlier distance (depth noise at a few metres), and
 /// the inliers a transform from points needs.
@@ -626,7 +650,8 @@ fn on_a_marker(map: &Map, position: &Vector3<f64>) -> bool {
 }
 
 /// Pairs of 3-D positions of one place in both maps, `(target, source)`: the source's points
-/// near the markers `near` (not on a marker: [`on_a_marker`]), moved by `transform` into the
+/// on the walls of the markers `near`, around them ([`POINTS_AROUND_MARKER_M`]; not on a
+/// marker: [`on_a_marker`]), moved by `transform` into the
 /// target's keyframes that saw those markers, matched by descriptor to keypoints with depth
 /// there (back-projected).
 fn point_pairs(
@@ -635,7 +660,7 @@ fn point_pairs(
     rig: &Rig,
     near: &[i32],
     transform: &Se3,
-    window_px: f64,
+    search: Search,
 ) -> Vec<SeamMatch> {
     let mut taken_points = vec![false; source.points.len()];
     let mut pairs = Vec::new();
@@ -644,13 +669,16 @@ fn point_pairs(
             continue;
         };
         let centre = s.world_from_marker.translation;
+        let normal = s.world_from_marker.rotation * Vector3::z();
         let around: Vec<usize> = source
             .points
             .iter()
             .enumerate()
             .filter(|(_, p)| {
+                let offset = p.position - centre;
                 !p.bad
-                    && (p.position - centre).norm() <= POINTS_AROUND_MARKER_M
+                    && offset.norm() <= POINTS_AROUND_MARKER_M
+                    && offset.dot(&normal).abs() <= MAX_POINT_ERROR_M
                     && !on_a_marker(source, &p.position)
             })
             .map(|(i, _)| i)
@@ -669,7 +697,7 @@ fn point_pairs(
             &around,
             &keyframes,
             transform,
-            window_px,
+            search,
             &mut taken_points,
             &mut pairs,
         );
@@ -685,7 +713,7 @@ fn pairs_in_keyframes(
     around: &[usize],
     keyframes: &[KeyFrameId],
     transform: &Se3,
-    window_px: f64,
+    search: Search,
     taken_points: &mut [bool],
     pairs: &mut Vec<SeamMatch>,
 ) {
@@ -717,7 +745,7 @@ fn pairs_in_keyframes(
                 right_u: u - rig.bf / p_c.z,
                 min_level: level.saturating_sub(1),
                 max_level: (level + 1).min(rig.levels - 1),
-                radius: window_px * rig.scale(level),
+                radius: search.window_px * rig.scale(level),
                 descriptor: point.descriptor,
                 angle: None,
             });
@@ -727,7 +755,7 @@ fn pairs_in_keyframes(
         // Windows bound the search, so ORB-SLAM's threshold for projection searches applies;
         // other robots' views of a place differ more than one robot's.
         let options = SearchOptions {
-            max_distance: TH_HIGH,
+            max_distance: search.max_distance,
             ratio: Some(0.8),
             check_orientation: false,
         };
@@ -1118,16 +1146,38 @@ mod tests {
     /// middle, seen by one keyframe from `camera` (building frame) into a map whose frame is
     /// `building_from_map` away; `descriptor_seed` names the points' texture.
     fn wall_map(camera: &Se3, building_from_map: &Se3, descriptor_seed: u64) -> Map {
-        marked_wall_map(camera, building_from_map, descriptor_seed, false)
+        marked_wall_map(camera, building_from_map, descriptor_seed, &[])
     }
 
-    /// [`wall_map`], with 36 corners of marker 10's printed pattern as points too when
-    /// `pattern` (the same descriptors in every map: every print of an id looks alike).
+    /// Marker 10's printed pattern as 36 points (the same descriptors in every map: every
+    /// print of an id looks alike), building frame.
+    fn pattern() -> Vec<(Vector3<f64>, u64)> {
+        (0..36)
+            .map(|i| {
+                let (x, y) = ((i % 6) as f64 * 0.032 - 0.03, (i / 6) as f64 * 0.032 - 0.06);
+                (Vector3::new(x, y, 2.99), 900_000 + i as u64)
+            })
+            .collect()
+    }
+
+    /// 40 corners of floor tiles in front of the wall, building frame: alike in every building
+    /// with those tiles.
+    fn floor() -> Vec<(Vector3<f64>, u64)> {
+        (0..40)
+            .map(|i| {
+                let (x, z) = ((i % 8) as f64 * 0.25 - 0.9, (i / 8) as f64 * 0.2 + 2.0);
+                (Vector3::new(x, 0.6, z), 800_000 + i as u64)
+            })
+            .collect()
+    }
+
+    /// [`wall_map`] with `extra` points (building frame, descriptor ids) seen as well; with
+    /// extras, the wall is bare within 0.2 m of the marker (the quiet zone of a print).
     fn marked_wall_map(
         camera: &Se3,
         building_from_map: &Se3,
         descriptor_seed: u64,
-        pattern: bool,
+        extra: &[(Vector3<f64>, u64)],
     ) -> Map {
         use crate::triangulation::tests::{frame_of, Depth};
         let rig = rig();
@@ -1140,18 +1190,9 @@ mod tests {
                     Depth::Measured,
                 )
             })
-            .filter(|(p, _, _)| !pattern || (p.x - 0.05).hypot(p.y - 0.02) > 0.2)
+            .filter(|(p, _, _)| extra.is_empty() || (p.x - 0.05).hypot(p.y - 0.02) > 0.2)
             .collect();
-        if pattern {
-            wall.extend((0..36).map(|i| {
-                let (x, y) = ((i % 6) as f64 * 0.032 - 0.03, (i / 6) as f64 * 0.032 - 0.06);
-                (
-                    Vector3::new(x, y, 2.99),
-                    900_000 + i as u64,
-                    Depth::Measured,
-                )
-            }));
-        }
+        wall.extend(extra.iter().map(|&(p, id)| (p, id, Depth::Measured)));
         let (frame, _) = frame_of(&rig, camera, &wall);
         let map_from_building = building_from_map.inverse();
         let mut map = Map {
@@ -1221,23 +1262,28 @@ mod tests {
         assert_eq!(alignment.markers, vec![10, 11]);
     }
 
-    /// Two sites marked from one dictionary: marker 10 on a wall of each, the walls unalike.
-    /// The marker's own pattern gives points that match across the maps wherever the id is
-    /// printed; they are not the place's, and do not confirm it.
+    /// Two sites marked from one dictionary: marker 10 on a wall of each, the walls unalike,
+    /// the floors' tiles alike. The marker's own pattern and the tiles give points that match
+    /// across the maps wherever the id is mounted; they are not the place's, and do not
+    /// confirm it.
     #[test]
-    fn a_markers_own_pattern_does_not_confirm_a_place() {
+    fn a_markers_own_pattern_and_the_floor_do_not_confirm_a_place() {
         let beside = Se3::new(
             UnitQuaternion::from_euler_angles(0.0, 0.1, 0.0),
             Vector3::new(0.3, 0.0, 0.1),
         );
-        let target = marked_wall_map(&Se3::identity(), &Se3::identity(), 1000, true);
-        let elsewhere = marked_wall_map(&beside, &transform(), 5000, true);
-        assert!(matches!(
-            align_by_markers(&target, &elsewhere),
-            Err(NoAlignment::Unconfirmed { marker: 10, .. })
-        ));
+        for extra in [pattern(), floor()] {
+            let target = marked_wall_map(&Se3::identity(), &Se3::identity(), 1000, &extra);
+            let elsewhere = marked_wall_map(&beside, &transform(), 5000, &extra);
+            assert!(matches!(
+                align_by_markers(&target, &elsewhere),
+                Err(NoAlignment::Unconfirmed { marker: 10, .. })
+            ));
+        }
         // The same wall around it confirms it.
-        let here = marked_wall_map(&beside, &transform(), 1000, true);
+        let extra = [pattern(), floor()].concat();
+        let target = marked_wall_map(&Se3::identity(), &Se3::identity(), 1000, &extra);
+        let here = marked_wall_map(&beside, &transform(), 1000, &extra);
         let alignment = align_by_markers(&target, &here).unwrap();
         assert_eq!(alignment.markers, vec![10]);
         assert!(alignment.point_inliers >= MIN_POINT_INLIERS);
