@@ -622,10 +622,9 @@ const WIDE: Search = Search {
 };
 /// The pass that confirms a transform: a narrow window and ORB-SLAM's strict threshold. On a
 /// wall, a point put within a few pixels of a keypoint is within centimetres of it in 3-D
-/// whatever the transform, so the 3-D check adds little and the descriptor must: with the
-/// lenient threshold the generic corners of a busy wall (dots, bars, edges of posters) match
-/// within the window as often as not, and an id printed in two buildings was confirmed by
-/// 98 such points.
+/// whatever the transform, so the 3-D check adds little and the descriptor must tell: at the
+/// lenient threshold the generic corners of a busy wall (dots, bars, edges of posters) find a
+/// partner in the window often enough to confirm an id printed in another building.
 const NARROW: Search = Search {
     window_px: 5.0,
     max_distance: TH_LOW,
@@ -651,9 +650,8 @@ fn on_a_marker(map: &Map, position: &Vector3<f64>) -> bool {
 
 /// Pairs of 3-D positions of one place in both maps, `(target, source)`: the source's points
 /// on the walls of the markers `near`, around them ([`POINTS_AROUND_MARKER_M`]; not on a
-/// marker: [`on_a_marker`]), moved by `transform` into the
-/// target's keyframes that saw those markers, matched by descriptor to keypoints with depth
-/// there (back-projected).
+/// marker: [`on_a_marker`]), moved by `transform` into the target's keyframes that saw those
+/// markers, matched by descriptor to keypoints with depth there (back-projected).
 fn point_pairs(
     target: &Map,
     source: &Map,
