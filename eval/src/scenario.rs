@@ -373,7 +373,7 @@ pub fn run(
 /// One walk rendered (on another thread, a few frames ahead), encoded as the robot sends it
 /// and run through the pipeline, into `maps` when given (else a service of its own).
 #[allow(clippy::too_many_arguments)]
-pub(crate) fn run_walk(
+pub fn run_walk(
     config: &PipelineConfig,
     renderer: &Renderer,
     walk: &Walk,
@@ -432,7 +432,7 @@ pub(crate) fn run_walk(
 }
 
 /// A server's maps as the configuration sets them up.
-pub(crate) fn service_for(config: &PipelineConfig, dictionary: Option<Dictionary>) -> MapService {
+pub fn service_for(config: &PipelineConfig, dictionary: Option<Dictionary>) -> MapService {
     MapService::with_semantics(config.semantics.enabled, dictionary)
         .with_whole_map_optimisation(config.semantics.optimise_every_keyframes)
         .with_live_merges(config.atlas.merge_maps)

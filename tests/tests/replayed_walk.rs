@@ -5,7 +5,7 @@
 //! and third rounds are those after the first.
 
 use vsgraphs_pipeline::offline::{self, FrameSource, OfflineFrame};
-use vsgraphs_pipeline::{MapService, PipelineConfig};
+use vsgraphs_pipeline::PipelineConfig;
 use vsgraphs_proto::DepthEncoding;
 use vsgraphs_sim::sequence::render_frame;
 use vsgraphs_sim::wire::{camera_model, encode_frame, DEPTH_SCALE};
@@ -38,10 +38,7 @@ fn a_walk_played_again_adds_nothing_to_its_map() {
         })
     });
     let config = PipelineConfig::default();
-    let service = MapService::with_semantics(config.semantics.enabled, None)
-        .with_whole_map_optimisation(config.semantics.optimise_every_keyframes)
-        .with_live_merges(config.atlas.merge_maps)
-        .with_loop_closing(config.atlas.close_loops);
+    let service = vsgraphs_eval::scenario::service_for(&config, None);
     let camera = camera_model(renderer);
     let source = FrameSource {
         camera: &camera,

@@ -16,7 +16,9 @@
 
 use crate::frame::Rig;
 use crate::map::{KeyFrameId, LoopEdge, Map, MapMarker, MapPointId};
-use crate::matcher::{search_by_projection, Projected, SearchOptions, TH_HIGH, TH_LOW};
+use crate::matcher::{
+    search_by_projection, Projected, ProjectionLimits, SearchOptions, TH_HIGH, TH_LOW,
+};
 use crate::rigid::{ransac_rigid, rigid_fit, Pair};
 use nalgebra::Vector3;
 use vsgraphs_optim::Se3;
@@ -41,6 +43,14 @@ pub const MAX_CORNER_RMS_M: f64 = 0.15;
 /// Largest angle between a shared marker's orientations in the two maps once aligned, radians
 /// (15°). A marker's pose from an oblique view can be flipped while its corners stay close.
 pub const MAX_MARKER_ANGLE_RAD: f64 = 0.26;
+
+/// Of the source's points on the shared markers' walls that the target's keyframes should
+/// show (in view, at a distance and from a direction their descriptors were seen from), the
+/// share a true place finds at least. ORB-SLAM drops a point found in less than a quarter of
+/// the frames that should see it, so a place shows at least that share of its kept points to
+/// one robot; another robot's camera, exposure and the strict descriptor threshold find fewer,
+/// hence a tenth of it. A room built and marked like another finds next to none.
+pub const MIN_FOUND_SHARE: f64 = 0.025;
 
 /// How a source map lies in a target map's frame, by the markers both hold and the points
 /// around them.
@@ -174,6 +184,15 @@ pub enum NoAlignment {
         "the place recognised puts shared marker {marker} at two places {distance_m:.2} m apart"
     )]
     MarkerElsewhere { marker: i32, distance_m: f64 },
+    #[error(
+        "the shared markers {markers:?} agree, but of {in_view} points of their walls in view \
+         of the target's keyframes {found} are found there: two places built and marked alike"
+    )]
+    SceneDisagrees {
+        markers: Vec<i32>,
+        in_view: usize,
+        found: usize,
+    },
 }
 
 /// What [`absorb`] did: where the source's keyframes and points now are.
@@ -331,7 +350,11 @@ pub fn align_by_markers(target: &Map, source: &Map) -> Result<Alignment, NoAlign
             if placed_by(&fit).is_empty() {
                 continue;
             }
-            let (refit, confirming) = confirm(target, source, rig, &ids, &fit);
+            let Confirmation {
+                refit,
+                seam: confirming,
+                ..
+            } = confirm(target, source, rig, &ids, &fit);
             if confirming.len() > seam.len() && !placed_by(&refit).is_empty() {
                 if confirming.len() >= MIN_POINT_INLIERS {
                     transform = refit;
@@ -373,6 +396,22 @@ pub fn align_by_markers(target: &Map, source: &Map) -> Result<Alignment, NoAlign
                 agreeing: agreeing.iter().map(|&i| shared[i].0.id).collect(),
             }
         });
+    }
+    // Markers that agree are refuted by the walls around them: rooms built to one plan and
+    // marked from one dictionary put two ids in the same places, but not the same scene.
+    if let Some(rig) = target.rig.as_ref().or(source.rig.as_ref()) {
+        let near: Vec<i32> = placed.iter().map(|&i| shared[i].0.id).collect();
+        let scene = confirm(target, source, rig, &near, &transform);
+        let found = scene.seam.len().max(point_inliers);
+        if scene.in_view >= MIN_POINT_INLIERS
+            && (found as f64) < MIN_FOUND_SHARE * scene.in_view as f64
+        {
+            return Err(NoAlignment::SceneDisagrees {
+                markers: near,
+                in_view: scene.in_view,
+                found,
+            });
+        }
     }
     let squared: f64 = placed
         .iter()
@@ -447,21 +486,16 @@ pub fn align_by_place(target: &Map, source: &Map, place: &Place) -> Result<Align
     points.sort_unstable();
     points.dedup();
     let keyframes = around(target, place.target_keyframe)?;
-    let narrow = {
-        let mut taken = vec![false; source.points.len()];
-        let mut pairs = Vec::new();
-        pairs_in_keyframes(
-            (target, source, rig),
-            &points,
-            &keyframes,
-            &place.target_from_source,
-            NARROW,
-            &mut taken,
-            &mut pairs,
-        );
-        pairs
-    };
-    let (transform, seam) = refit_within(&narrow, &place.target_from_source);
+    let mut narrow = Found::new(source);
+    pairs_in_keyframes(
+        (target, source, rig),
+        &points,
+        &keyframes,
+        &place.target_from_source,
+        NARROW,
+        &mut narrow,
+    );
+    let (transform, seam) = refit_within(&narrow.pairs, &place.target_from_source);
     if seam.len() < MIN_POINT_INLIERS {
         return Err(NoAlignment::PlaceUnconfirmed {
             point_inliers: seam.len(),
@@ -539,6 +573,7 @@ fn from_points(
     transform: &Se3,
 ) -> Option<Se3> {
     let wide: Vec<Pair> = point_pairs(target, source, rig, near, transform, WIDE)
+        .pairs
         .iter()
         .map(SeamMatch::pair)
         .filter(|(to, from)| (to - transform.transform_point(from)).norm() <= WIDE_POINT_ERROR_M)
@@ -562,24 +597,33 @@ fn fit_by_ransac(pairs: &[Pair]) -> Option<Se3> {
     rigid_fit(&inliers.iter().map(|&i| pairs[i]).collect::<Vec<_>>())
 }
 
-/// The source's points around the markers `near` found in a narrow window where `fit` puts
-/// them, the transform refitted on those within [`MAX_POINT_ERROR_M`], and the matches that
-/// confirm the refit.
-fn confirm(
-    target: &Map,
-    source: &Map,
-    rig: &Rig,
-    near: &[i32],
-    fit: &Se3,
-) -> (Se3, Vec<SeamMatch>) {
+/// What the target's keyframes say of a transform: the source's points around the markers
+/// `near`, looked for in a narrow window where it puts them.
+struct Confirmation {
+    /// The transform refitted on the matches within [`MAX_POINT_ERROR_M`].
+    refit: Se3,
+    /// The matches within that distance of where the refit puts them.
+    seam: Vec<SeamMatch>,
+    /// Source points that a keyframe should have found ([`Found::in_view`]).
+    in_view: usize,
+}
+
+/// The [`Confirmation`] of `fit` by the source's points around the markers `near`.
+fn confirm(target: &Map, source: &Map, rig: &Rig, near: &[i32], fit: &Se3) -> Confirmation {
     let narrow = point_pairs(target, source, rig, near, fit, NARROW);
-    let (refit, confirming) = refit_within(&narrow, fit);
+    let (refit, seam) = refit_within(&narrow.pairs, fit);
+    let in_view = narrow.in_view();
     tracing::debug!(
-        narrow = narrow.len(),
-        confirming = confirming.len(),
+        in_view,
+        narrow = narrow.pairs.len(),
+        confirming = seam.len(),
         "points of the source found in the target"
     );
-    (refit, confirming)
+    Confirmation {
+        refit,
+        seam,
+        in_view,
+    }
 }
 
 /// The pairs within [`MAX_POINT_ERROR_M`] of where `fit` puts them, the transform refitted on
@@ -659,9 +703,8 @@ fn point_pairs(
     near: &[i32],
     transform: &Se3,
     search: Search,
-) -> Vec<SeamMatch> {
-    let mut taken_points = vec![false; source.points.len()];
-    let mut pairs = Vec::new();
+) -> Found {
+    let mut found = Found::new(source);
     for id in near {
         let (Some(t), Some(s)) = (target.markers.get(id), source.markers.get(id)) else {
             continue;
@@ -696,25 +739,49 @@ fn point_pairs(
             &keyframes,
             transform,
             search,
-            &mut taken_points,
-            &mut pairs,
+            &mut found,
         );
     }
-    pairs
+    found
+}
+
+/// A search for the source's points in the target's keyframes, so far.
+struct Found {
+    /// Source points matched (each is matched once), by index.
+    taken: Vec<bool>,
+    /// Source points that a keyframe should have found, by index: in its image, at a distance
+    /// and from a direction their descriptor was seen from (ORB-SLAM's limits for a projection
+    /// search).
+    in_view: Vec<bool>,
+    pairs: Vec<SeamMatch>,
+}
+
+impl Found {
+    fn new(source: &Map) -> Self {
+        Self {
+            taken: vec![false; source.points.len()],
+            in_view: vec![false; source.points.len()],
+            pairs: Vec::new(),
+        }
+    }
+
+    fn in_view(&self) -> usize {
+        self.in_view.iter().filter(|&&v| v).count()
+    }
 }
 
 /// The source's points `around` (indices), moved by `transform` into each of the target's
 /// `keyframes` in turn and matched by descriptor to keypoints with depth there
-/// (back-projected), each point once (`taken_points`); the pairs are added to `pairs`.
+/// (back-projected), each point once; the pairs are added to `found`.
 fn pairs_in_keyframes(
     (target, source, rig): (&Map, &Map, &Rig),
     around: &[usize],
     keyframes: &[KeyFrameId],
     transform: &Se3,
     search: Search,
-    taken_points: &mut [bool],
-    pairs: &mut Vec<SeamMatch>,
+    found: &mut Found,
 ) {
+    let limits = ProjectionLimits::default();
     for &k in keyframes {
         let keyframe = target.keyframe(k);
         let camera_from_source = keyframe.world_from_camera.inverse().compose(transform);
@@ -722,7 +789,7 @@ fn pairs_in_keyframes(
         let mut candidates = Vec::new();
         let mut which = Vec::new();
         for &i in around {
-            if taken_points[i] {
+            if found.taken[i] {
                 continue;
             }
             let point = &source.points[i];
@@ -733,8 +800,15 @@ fn pairs_in_keyframes(
             };
             let at = transform.transform_point(&point.position);
             let distance = (at - camera_centre).norm();
-            if distance < point.min_distance * 0.8 || distance > point.max_distance * 1.2 {
+            if distance < point.min_distance * limits.min_distance_ratio
+                || distance > point.max_distance * limits.max_distance_ratio
+            {
                 continue;
+            }
+            let view_cos =
+                (camera_centre - at).dot(&(transform.rotation * point.normal)) / distance;
+            if view_cos >= limits.min_view_cos {
+                found.in_view[i] = true;
             }
             let level = rig.predict_level(point.max_distance, distance);
             candidates.push(Projected {
@@ -762,8 +836,8 @@ fn pairs_in_keyframes(
                 continue;
             };
             let i = which[c];
-            taken_points[i] = true;
-            pairs.push(SeamMatch {
+            found.taken[i] = true;
+            found.pairs.push(SeamMatch {
                 keyframe: k,
                 keypoint,
                 source_point: MapPointId(i as u32),
@@ -1258,6 +1332,50 @@ mod tests {
         source.markers.insert(11, eleven);
         let alignment = align_by_markers(&target, &source).unwrap();
         assert_eq!(alignment.markers, vec![10, 11]);
+    }
+
+    /// Two rooms built to one plan and marked from one dictionary: markers 10 and 11 at the
+    /// same places on a wall of each, so the two ids agree on one transform. The walls around
+    /// them are unalike, and their points, in view of the target's keyframe, are not found
+    /// there: the scene refutes the markers. On the same wall the maps align.
+    #[test]
+    fn markers_that_agree_are_refuted_by_an_unalike_wall_around_them() {
+        let beside = Se3::new(
+            UnitQuaternion::from_euler_angles(0.0, 0.1, 0.0),
+            Vector3::new(0.3, 0.0, 0.1),
+        );
+        let with_eleven = |mut map: Map| {
+            let ten = map.markers[&10].clone();
+            let eleven = MapMarker {
+                id: 11,
+                world_from_marker: ten.world_from_marker.compose(&Se3::new(
+                    UnitQuaternion::identity(),
+                    Vector3::new(0.6, 0.0, 0.0),
+                )),
+                ..ten
+            };
+            map.markers.insert(11, eleven);
+            map
+        };
+        let target = with_eleven(wall_map(&Se3::identity(), &Se3::identity(), 1000));
+        let elsewhere = with_eleven(wall_map(&beside, &transform(), 5000));
+        match align_by_markers(&target, &elsewhere) {
+            Err(NoAlignment::SceneDisagrees {
+                markers,
+                in_view,
+                found,
+            }) => {
+                assert_eq!(markers, vec![10, 11]);
+                assert!(in_view >= MIN_POINT_INLIERS, "{in_view}");
+                assert_eq!(found, 0);
+            }
+            other => panic!("{other:?}"),
+        }
+        let here = with_eleven(wall_map(&beside, &transform(), 1000));
+        let alignment = align_by_markers(&target, &here).unwrap();
+        assert_eq!(alignment.markers, vec![10, 11]);
+        let error = alignment.target_from_source.compose(&transform().inverse());
+        assert!(error.translation.norm() < 0.01, "{error:?}");
     }
 
     /// Two sites marked from one dictionary: marker 10 on a wall of each, the walls unalike,
