@@ -13,13 +13,13 @@
 use crate::model;
 use crate::store::{Save, Saver, Store, StoreError};
 use std::any::Any;
-use std::collections::{BTreeMap, BTreeSet, VecDeque};
+use std::collections::{BTreeMap, VecDeque};
 use std::panic::{catch_unwind, AssertUnwindSafe};
 use std::sync::atomic::{AtomicBool, AtomicU32, Ordering};
 use std::sync::{mpsc, Arc, Condvar, Mutex, MutexGuard, RwLock, Weak};
 use std::thread::JoinHandle;
 use std::time::{Duration, Instant};
-use vsgraphs_proto::api::MapView;
+use vsgraphs_proto::api::{MapMarker, MapView};
 use vsgraphs_semantics::{Dictionary, SemanticMap};
 use vsgraphs_slam::archive::rows::Ledger;
 use vsgraphs_slam::local_mapping::{MergeOutcome, PointStatistics};
@@ -58,9 +58,9 @@ struct Inner {
     background_merges: AtomicBool,
     looks: Arc<Looks>,
     looker: Mutex<Option<JoinHandle<()>>>,
-    /// Pairs of maps tried, with how many markers they shared then: a pair is tried again only
-    /// once it shares more.
-    tried: Mutex<BTreeMap<(MapId, MapId), usize>>,
+    /// Pairs of maps tried, with what they shared then: a pair is tried again only once it
+    /// shares more ([`Shared::grown_since`]).
+    tried: Mutex<BTreeMap<(MapId, MapId), Shared>>,
     /// Merges refused, the newest [`KEPT_REFUSALS`].
     refused: Mutex<VecDeque<RefusedMerge>>,
     /// Places of another map a map's keyframes recognised, by (map, other map), until enough
@@ -267,6 +267,47 @@ enum Failure {
 /// Refused places a service keeps for inspection: enough to show what fooled the words over a
 /// session, bounded so that a look-alike seen for hours does not grow the server.
 pub const KEPT_REFUSALS: usize = 256;
+
+/// What two maps have in common for a merge on markers: ids both hold, and the keyframes of
+/// both that saw those markers, which is what the points around them come from.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+struct Shared {
+    markers: usize,
+    sightings: u64,
+}
+
+impl Shared {
+    fn between(a: &[MapMarker], b: &[MapMarker]) -> Self {
+        let seen: BTreeMap<i32, u64> = a
+            .iter()
+            .map(|m| (m.id, u64::from(m.observations)))
+            .collect();
+        let mut shared = Self {
+            markers: 0,
+            sightings: 0,
+        };
+        for marker in b {
+            if let Some(&in_a) = seen.get(&marker.id) {
+                shared.markers += 1;
+                shared.sightings += in_a + u64::from(marker.observations);
+            }
+        }
+        shared
+    }
+
+    /// Whether a pair is worth a (new) try: markers in common, and since the last try more of
+    /// them, or twice the sightings. Maps first tried while young have too few points around
+    /// their markers to confirm them; the doubling tries them again as their robots add views,
+    /// while a pair that never aligns (an id printed twice) costs only a try per doubling.
+    fn grown_since(self, before: Option<Shared>) -> bool {
+        match before {
+            None => self.markers > 0,
+            Some(before) => {
+                self.markers > before.markers || self.sightings >= 2 * before.sightings.max(1)
+            }
+        }
+    }
+}
 
 fn lock<T>(mutex: &Mutex<T>) -> MutexGuard<'_, T> {
     // A panic elsewhere must not take the service down with it.
@@ -824,8 +865,9 @@ impl MapService {
     /// Merges map `map` with every other map that holds a marker it holds, when live merges
     /// are on: the map with more keyframes takes the other in (the older on a tie). Called
     /// after a keyframe changed `map`; a pair that did not align is tried again only once it
-    /// shares more markers, so a map that keeps mapping costs a look at each map's marker ids.
-    /// Returns the merges made.
+    /// shares more markers, or its shared markers have been seen from at least twice as many
+    /// keyframes ([`Shared::grown_since`]), so a map that keeps mapping costs a look at each
+    /// map's marker ids. Returns the merges made.
     pub fn merge_where_shared(&self, map: MapId) -> Vec<MergeReport> {
         if !self.inner.merge_live.load(Ordering::Relaxed) {
             return Vec::new();
@@ -842,17 +884,14 @@ impl MapService {
             let Some(here) = views.iter().find(|(id, _)| *id == current) else {
                 break;
             };
-            let ids =
-                |view: &MapView| -> BTreeSet<i32> { view.markers.iter().map(|m| m.id).collect() };
-            let own = ids(&here.1);
             for (other, view) in &views {
                 if *other == current {
                     continue;
                 }
-                let shared = own.intersection(&ids(view)).count();
+                let shared = Shared::between(&here.1.markers, &view.markers);
                 let pair = (current.min(*other), current.max(*other));
-                let before = lock(&self.inner.tried).get(&pair).copied().unwrap_or(0);
-                if shared <= before {
+                let before = lock(&self.inner.tried).get(&pair).copied();
+                if !shared.grown_since(before) {
                     continue;
                 }
                 lock(&self.inner.tried).insert(pair, shared);
@@ -877,7 +916,8 @@ impl MapService {
                         tracing::info!(
                             target = target.0,
                             source = source.0,
-                            shared,
+                            shared = shared.markers,
+                            sightings = shared.sightings,
                             %error,
                             "maps that share markers were not merged"
                         );
@@ -1485,5 +1525,39 @@ mod tests {
             ours.request(&unknown, flush()),
             Err(TrackError::UnknownMap(MapId(7)))
         ));
+    }
+
+    fn markers(seen: &[(i32, u32)]) -> Vec<MapMarker> {
+        let pose = vsgraphs_proto::api::Pose {
+            translation_m: [0.0; 3],
+            rotation_xyzw: [0.0, 0.0, 0.0, 1.0],
+        };
+        seen.iter()
+            .map(|&(id, observations)| MapMarker {
+                id,
+                side_m: 0.2,
+                world_from_marker: pose,
+                observations,
+                keyframes: Vec::new(),
+            })
+            .collect()
+    }
+
+    #[test]
+    fn a_refused_pair_is_tried_again_once_its_shared_markers_are_seen_twice_as_often() {
+        // Marker 0 in both (2 + 1 keyframes), 5 and 6 in one map each.
+        let young = Shared::between(&markers(&[(0, 2), (5, 9)]), &markers(&[(0, 1), (6, 4)]));
+        assert_eq!((young.markers, young.sightings), (1, 3));
+        assert!(young.grown_since(None));
+        let apart = Shared::between(&markers(&[(5, 9)]), &markers(&[(6, 9)]));
+        assert!(!apart.grown_since(None));
+        // The same marker, seen more but not yet twice as often: not tried again.
+        let older = Shared::between(&markers(&[(0, 3)]), &markers(&[(0, 2)]));
+        assert!(!older.grown_since(Some(young)));
+        let twice = Shared::between(&markers(&[(0, 4)]), &markers(&[(0, 2)]));
+        assert!(twice.grown_since(Some(young)));
+        // Another marker in common is worth a try at once.
+        let more = Shared::between(&markers(&[(0, 2), (7, 1)]), &markers(&[(0, 1), (7, 1)]));
+        assert!(more.grown_since(Some(young)));
     }
 }
