@@ -6,6 +6,7 @@
 //! The scores need no OpenCV; `scenario` brings the pipeline (and so OpenCV) in. Nothing in the
 //! server depends on this crate.
 
+pub mod in_step;
 pub mod markers;
 pub mod merge_cost;
 pub mod metrics;

@@ -170,6 +170,10 @@ enum Command {
         /// then merged where they share markers; scored together (one alignment for all).
         #[arg(long, conflicts_with = "robot")]
         all_robots: bool,
+        /// With --all-robots: every robot at once, a frame each in turn, as a server sees robots
+        /// that stream at once (their maps meet young), the same on every run.
+        #[arg(long, requires = "all_robots")]
+        in_step: bool,
         /// Stop after this many frames.
         #[arg(long)]
         limit: Option<usize>,
@@ -426,6 +430,7 @@ fn main() -> anyhow::Result<()> {
             scenario,
             robot,
             all_robots,
+            in_step,
             limit,
             seed,
             config,
@@ -453,6 +458,7 @@ fn main() -> anyhow::Result<()> {
                 realtime,
                 restart,
                 store,
+                in_step,
                 ..ScenarioOptions::default()
             };
             if all_robots {

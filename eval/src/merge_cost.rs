@@ -4,10 +4,10 @@
 //! then set beside the merges' windows. The Atlas issue asks tracking's 99th percentile during
 //! a merge to stay within 20 % of the rest.
 
-use crate::scenario::{dictionary_for, run_walk, service_for, ScenarioOptions};
+use crate::scenario::{dictionary_for, each_at_once, run_walk, service_for, ScenarioOptions};
 use anyhow::Context;
 use serde::Serialize;
-use vsgraphs_pipeline::offline::{self, FrameTimes, OfflineSummary};
+use vsgraphs_pipeline::offline::{self, FrameTimes};
 use vsgraphs_pipeline::PipelineConfig;
 use vsgraphs_sim::scenarios::Scenario;
 
@@ -90,40 +90,19 @@ pub fn run(
         realtime: true,
         ..options.clone()
     };
-    let summaries: Vec<anyhow::Result<OfflineSummary>> = std::thread::scope(|scope| {
-        let runs: Vec<_> = walks
-            .iter()
-            .enumerate()
-            .map(|(r, walk)| {
-                let (renderer, options, dictionary, service) =
-                    (&renderer, &options, &dictionary, &service);
-                let progress = &progress;
-                scope.spawn(move || {
-                    let total = options
-                        .limit
-                        .map_or(walk.times.len(), |l| l.min(walk.times.len()));
-                    run_walk(
-                        config,
-                        renderer,
-                        walk,
-                        total,
-                        options,
-                        dictionary.as_ref(),
-                        Some(service),
-                        |done, total| progress(r, done, total),
-                    )
-                    .map(|(summary, _)| summary)
-                })
-            })
-            .collect();
-        runs.into_iter()
-            .map(|run| {
-                run.join()
-                    .unwrap_or_else(|_| Err(anyhow::anyhow!("a robot's run panicked")))
-            })
-            .collect()
-    });
-    let summaries = summaries.into_iter().collect::<anyhow::Result<Vec<_>>>()?;
+    let summaries = each_at_once(&walks, |r, walk| {
+        run_walk(
+            config,
+            &renderer,
+            walk,
+            options.frames_of(walk),
+            &options,
+            dictionary.as_ref(),
+            Some(&service),
+            |done, total| progress(r, done, total),
+        )
+        .map(|(summary, _)| summary)
+    })?;
 
     let reports = service.merges();
     let windows: Vec<(u64, u64)> = reports

@@ -3,6 +3,7 @@
 //! tracking, mapping) without the network; then both scores: the trajectory against the walk,
 //! and the map's building model against the building's ground truth.
 
+use crate::in_step::InStep;
 use crate::metrics::{self, Compare};
 use crate::score::{self, Metric, Report};
 use crate::semantics::{self, Gates, MapAlignment, Rigid, SemanticReport};
@@ -46,6 +47,9 @@ pub struct ScenarioOptions {
     /// Keep the maps in a store at this path (a new file), as the server does: measures the
     /// store's cost (`ScenarioRun::store`).
     pub store: Option<std::path::PathBuf>,
+    /// Every robot at once, a frame each in turn ([`crate::in_step`]), rather than one after
+    /// the other ([`run_together`] only).
+    pub in_step: bool,
 }
 
 /// Which semantic dictionary a scenario's run gets.
@@ -60,6 +64,14 @@ pub enum DictionaryChoice {
     None,
 }
 
+impl ScenarioOptions {
+    /// The frames of `walk` that are run: all, or the first [`ScenarioOptions::limit`].
+    pub fn frames_of(&self, walk: &Walk) -> usize {
+        self.limit
+            .map_or(walk.times.len(), |l| l.min(walk.times.len()))
+    }
+}
+
 impl Default for ScenarioOptions {
     fn default() -> Self {
         Self {
@@ -71,6 +83,7 @@ impl Default for ScenarioOptions {
             realtime: false,
             restart: None,
             store: None,
+            in_step: false,
         }
     }
 }
@@ -261,9 +274,7 @@ pub fn run(
         options.robot
     );
     let walk = walks.swap_remove(options.robot);
-    let total = options
-        .limit
-        .map_or(walk.times.len(), |l| l.min(walk.times.len()));
+    let total = options.frames_of(&walk);
     let reference = walk.trajectory(0.0, total);
     let truth: BuildingModel = serde_json::from_str(&building.ground_truth_json())
         .context("reading the building's ground truth as a model")?;
@@ -354,7 +365,10 @@ pub fn run(
             .map(|report| {
                 merge_row(
                     report,
-                    &map_origins(&service, &[(0..next_map_id(&service), &reference)]),
+                    &map_origins(
+                        &service,
+                        &[(&(0..next_map_id(&service)).collect::<Vec<_>>(), &reference)],
+                    ),
                 )
             })
             .collect(),
@@ -381,6 +395,27 @@ pub fn run_walk(
     options: &ScenarioOptions,
     dictionary: Option<&Dictionary>,
     maps: Option<&MapService>,
+    progress: impl FnMut(usize, usize),
+) -> anyhow::Result<(OfflineSummary, Trajectories)> {
+    run_walk_in_turns(
+        config, renderer, walk, total, options, dictionary, maps, None, progress,
+    )
+}
+
+/// A robot's turns among robots in step: its index and the map service's next id.
+type Turn<'a> = (&'a InStep, usize, &'a (dyn Fn() -> u32 + Sync));
+
+/// [`run_walk`], its frames let through on the robot's turns when `turn` is given.
+#[allow(clippy::too_many_arguments)]
+fn run_walk_in_turns(
+    config: &PipelineConfig,
+    renderer: &Renderer,
+    walk: &Walk,
+    total: usize,
+    options: &ScenarioOptions,
+    dictionary: Option<&Dictionary>,
+    maps: Option<&MapService>,
+    turn: Option<Turn<'_>>,
     progress: impl FnMut(usize, usize),
 ) -> anyhow::Result<(OfflineSummary, Trajectories)> {
     let camera = camera_model(renderer);
@@ -427,7 +462,39 @@ pub fn run_walk(
                 std::thread::sleep(due.saturating_sub(started.elapsed()));
             }
         });
-        offline::run_frames(config, source, paced, progress)
+        match turn {
+            Some((step, robot, next_map)) => offline::run_frames(
+                config,
+                source,
+                step.frames(robot, paced, next_map),
+                progress,
+            ),
+            None => offline::run_frames(config, source, paced, progress),
+        }
+    })
+}
+
+/// `run(r, walk)` for every walk at once, each on a thread of its own; the results in the
+/// walks' order, or the first error.
+pub(crate) fn each_at_once<T: Send>(
+    walks: &[Walk],
+    run: impl Fn(usize, &Walk) -> anyhow::Result<T> + Sync,
+) -> anyhow::Result<Vec<T>> {
+    std::thread::scope(|scope| {
+        let runs: Vec<_> = walks
+            .iter()
+            .enumerate()
+            .map(|(r, walk)| {
+                let run = &run;
+                scope.spawn(move || run(r, walk))
+            })
+            .collect();
+        runs.into_iter()
+            .map(|run| {
+                run.join()
+                    .unwrap_or_else(|_| Err(anyhow::anyhow!("a robot's run panicked")))
+            })
+            .collect()
     })
 }
 
@@ -497,8 +564,8 @@ pub struct MergeRow {
     pub optimise_ms: f64,
 }
 
-/// Every robot of a scenario, one after the other, mapping into one server's maps; the maps
-/// are then merged where they share markers and scored as one.
+/// Every robot of a scenario, one after the other or in step, mapping into one server's maps;
+/// the maps are then merged where they share markers and scored as one.
 #[derive(Debug, Serialize)]
 pub struct TogetherRun {
     pub robots: Vec<RobotPart>,
@@ -528,14 +595,14 @@ pub struct TogetherRun {
 
 /// Where each map's frame lies in the building, by the server's map id: a map's first
 /// keyframe where the walk of the robot that started the map put that camera. `runs`: the ids
-/// of the maps each robot started (robots run one after the other), and its walk.
+/// of the maps each robot started, and its walk.
 fn map_origins(
     service: &MapService,
-    runs: &[(std::ops::Range<u32>, &Trajectory)],
+    runs: &[(&[u32], &Trajectory)],
 ) -> BTreeMap<u32, nalgebra::Isometry3<f64>> {
     let mut origins = BTreeMap::new();
     for (ids, walk_reference) in runs {
-        for id in ids.clone() {
+        for &id in *ids {
             let Some(view) = service.last_snapshot(MapId(id)) else {
                 continue;
             };
@@ -617,14 +684,11 @@ pub fn mapped(
     let service = service_for(config, dictionary.clone());
     let mut summaries = Vec::new();
     for walk in scenario.walks().context("planning the walks")? {
-        let total = options
-            .limit
-            .map_or(walk.times.len(), |l| l.min(walk.times.len()));
         let (summary, _) = run_walk(
             config,
             &renderer,
             &walk,
-            total,
+            options.frames_of(&walk),
             options,
             dictionary.as_ref(),
             Some(&service),
@@ -635,12 +699,13 @@ pub fn mapped(
     Ok((service, summaries))
 }
 
-/// Runs every robot of `scenario` (see [`TogetherRun`]); `progress(robot, done, total)`.
+/// Runs every robot of `scenario` (see [`TogetherRun`]): one after the other, or in step
+/// ([`ScenarioOptions::in_step`]); `progress(robot, done, total)`.
 pub fn run_together(
     config: &PipelineConfig,
     scenario: &Scenario,
     options: &ScenarioOptions,
-    mut progress: impl FnMut(usize, usize, usize),
+    progress: impl Fn(usize, usize, usize) + Sync,
 ) -> anyhow::Result<TogetherRun> {
     let (building, renderer) = scenario.build(options.seed).context("building the plan")?;
     let walks = scenario.walks().context("planning the walks")?;
@@ -648,23 +713,50 @@ pub fn run_together(
         .context("reading the building's ground truth as a model")?;
     let dictionary = dictionary_for(&building, options.dictionary)?;
     let service = service_for(config, dictionary.clone());
+    let total = |walk: &Walk| options.frames_of(walk);
+    // Each robot's run and the maps it started.
+    let walked: Vec<(OfflineSummary, Trajectories, Vec<u32>)> = if options.in_step {
+        let step = InStep::new(walks.len(), next_map_id(&service));
+        let next_map = || next_map_id(&service);
+        let runs = each_at_once(&walks, |r, walk| {
+            run_walk_in_turns(
+                config,
+                &renderer,
+                walk,
+                total(walk),
+                options,
+                dictionary.as_ref(),
+                Some(&service),
+                Some((&step, r, &next_map)),
+                |done, total| progress(r, done, total),
+            )
+        });
+        runs?
+            .into_iter()
+            .zip(step.started())
+            .map(|((summary, poses), started)| (summary, poses, started))
+            .collect()
+    } else {
+        let mut walked = Vec::new();
+        for (r, walk) in walks.iter().enumerate() {
+            let first_map = next_map_id(&service);
+            let (summary, poses) = run_walk(
+                config,
+                &renderer,
+                walk,
+                total(walk),
+                options,
+                dictionary.as_ref(),
+                Some(&service),
+                |done, total| progress(r, done, total),
+            )?;
+            walked.push((summary, poses, (first_map..next_map_id(&service)).collect()));
+        }
+        walked
+    };
     let mut runs = Vec::new();
-    for (r, walk) in walks.iter().enumerate() {
-        let first_map = next_map_id(&service);
-        let total = options
-            .limit
-            .map_or(walk.times.len(), |l| l.min(walk.times.len()));
-        let (summary, poses) = run_walk(
-            config,
-            &renderer,
-            walk,
-            total,
-            options,
-            dictionary.as_ref(),
-            Some(&service),
-            |done, total| progress(r, done, total),
-        )?;
-        let reference = walk.trajectory(0.0, total);
+    for (walk, (summary, poses, started)) in walks.iter().zip(walked) {
+        let reference = walk.trajectory(0.0, total(walk));
         let last_map = poses.refined.last().map(|p| p.map);
         let alone: Vec<_> = poses
             .refined
@@ -683,7 +775,7 @@ pub fn run_together(
             poses,
             reference,
             ate_alone_rmse,
-            first_map..next_map_id(&service),
+            started,
         ));
     }
     // Maps merged as robots mapped (live merges), then every pair left, the older as the
@@ -709,7 +801,7 @@ pub fn run_together(
         &service,
         &runs
             .iter()
-            .map(|(_, _, _, reference, _, ids)| (ids.clone(), reference))
+            .map(|(_, _, _, reference, _, ids)| (ids.as_slice(), reference))
             .collect::<Vec<_>>(),
     );
     let merges = service
