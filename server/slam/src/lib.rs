@@ -27,6 +27,7 @@ pub mod markers;
 pub mod matcher;
 pub mod merge;
 pub mod places;
+pub mod recent_points;
 pub mod rigid;
 pub mod sighting;
 pub mod tracking;

@@ -11,11 +11,13 @@
 use crate::error::TrackError;
 use crate::frame::{Frame, Rig};
 use crate::global::{self, GlobalJob, SolvedGlobal};
+use crate::ids::TrackerId;
 use crate::loops;
 use crate::map::{KeyFrameId, Map, MapPointId};
 use crate::mapping::{self, LocalBaJob, SolvedLocalBa};
 use crate::markers;
 use crate::merge;
+use crate::recent_points::RecentPoints;
 use crate::triangulation;
 use crate::walls::WallPrior;
 use crate::worker::Worker;
@@ -124,6 +126,7 @@ pub enum MapRequest {
 /// A tracked frame to make a keyframe of.
 #[derive(Debug)]
 pub struct KeyframeRequest {
+    pub tracker: TrackerId,
     pub frame: Frame,
     pub rig: Rig,
     /// The pose tracking gave the frame, in the map as the tracker read it.
@@ -161,7 +164,7 @@ pub enum MapReply {
 pub struct LocalMapper {
     config: MappingConfig,
     /// Points created recently, watched by culling until they prove themselves.
-    recent_points: Vec<MapPointId>,
+    recent_points: RecentPoints,
     ba_worker: Option<Worker<LocalBaJob, SolvedLocalBa>>,
     /// A bundle adjustment being solved in the background: its keyframe and the rig it was
     /// built with.
@@ -204,7 +207,7 @@ impl LocalMapper {
     pub fn new(config: MappingConfig) -> Self {
         Self {
             config,
-            recent_points: Vec::new(),
+            recent_points: RecentPoints::default(),
             ba_worker: None,
             pending_ba: None,
             walls: Vec::new(),
@@ -444,6 +447,7 @@ impl LocalMapper {
     /// A new keyframe and the local mapping around it.
     fn insert(&mut self, map: &mut Map, request: KeyframeRequest) -> Result<MapReply, TrackError> {
         let KeyframeRequest {
+            tracker,
             frame,
             rig,
             world_from_camera,
@@ -479,18 +483,19 @@ impl LocalMapper {
         }
         let (k, created) = mapping::insert_keyframe(map, &rig, frame, pose, &points);
         self.heads.advance(map, reference, k);
-        self.recent_points.extend(created);
+        self.recent_points.keyframe(tracker);
+        self.recent_points.watch(tracker, created);
         if self.config.triangulate_points {
             let (created, report) = triangulation::create_points_with_neighbours(map, &rig, k);
             tracing::trace!(keyframe = k.0, ?report, "points triangulated");
-            self.recent_points.extend(created);
+            self.recent_points.watch(tracker, created);
         }
         let added = markers::add_sightings(map, k, &rig);
         if !added.is_empty() {
             tracing::debug!(?added, keyframe = k.0, "markers mapped");
         }
         mapping::fuse_with_neighbours(map, &rig, k);
-        mapping::cull_recent_points(map, &mut self.recent_points, k);
+        self.recent_points.cull(map, tracker);
         map.refresh_neighbours(k);
         self.loop_check = Some((k, rig.clone()));
         if self.config.local_ba_iterations > 0 {
@@ -569,9 +574,10 @@ const MAX_HEADS: usize = 8;
 /// every 0.1–0.3 s, so this is tens of seconds of the others' mapping.
 const HEAD_STALE_AFTER: u64 = 100;
 
-/// Where each robot writing to a map is: its newest keyframe. A request does not say which
-/// robot sent it, but it names the tracker's reference keyframe, near the robot: the new
-/// keyframe replaces the head that is that reference, or else the head nearest it. So after
+/// Where each robot writing to a map is: its newest keyframe. Heads go by the tracker's
+/// reference keyframe a request names, near the robot, rather than by its tracker: a robot that
+/// came with a merged map is known here only by the keyframe it was at. The new keyframe
+/// replaces the head that is that reference, or else the head nearest it. So after
 /// two maps are merged the robots of both keep a head each, and an optimisation of the whole
 /// map holds both robots' windows still instead of swinging the part one of them tracks in.
 #[derive(Debug, Default)]

@@ -217,32 +217,6 @@ fn fuse_into(
     (added, merged)
 }
 
-/// Culls recently created points that tracking rarely finds (found in under a quarter of the
-/// frames that should see them) or that too few keyframes observe two keyframes after their
-/// birth; points three keyframes old leave the recent list. Returns how many were culled.
-pub fn cull_recent_points(
-    map: &mut Map,
-    recent: &mut Vec<MapPointId>,
-    current: KeyFrameId,
-) -> usize {
-    let mut culled = 0;
-    recent.retain(|&p| {
-        let point = map.point(p);
-        if point.bad {
-            return false;
-        }
-        let age = current.0.saturating_sub(point.first_keyframe.0);
-        if point.found_ratio() < 0.25 || (age >= 2 && point.observations.len() < 3) {
-            map.cull_point(p);
-            culled += 1;
-            false
-        } else {
-            age < 3
-        }
-    });
-    culled
-}
-
 /// A keyframe is redundant when this share of its close points is seen by enough others.
 const REDUNDANT_SHARE: f64 = 0.9;
 /// Other keyframes that must see a point, at the same scale or finer, for it to be redundant.

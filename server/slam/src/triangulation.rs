@@ -38,7 +38,7 @@ pub struct TriangulationReport {
 
 /// Creates points for `keyframe`'s unexplained keypoints by matching them in its
 /// [`TRIANGULATION_NEIGHBOURS`] most covisible keyframes. Returns the new points (young
-/// points: [`crate::mapping::cull_recent_points`] should watch them) and a report.
+/// points: [`crate::recent_points::RecentPoints`] should watch them) and a report.
 pub fn create_points_with_neighbours(
     map: &mut Map,
     rig: &Rig,

@@ -32,6 +32,7 @@ mod relocalisation;
 use crate::atlas::{MapMove, MapWriter, SharedMap};
 pub use crate::error::TrackError;
 use crate::frame::{Frame, Rig};
+use crate::ids::TrackerId;
 use crate::local_mapping::{KeyframeRequest, MapReply, MapRequest, MappingConfig, PointStatistics};
 use crate::map::{Anchor, KeyFrameId, Map, MapId};
 use crate::sighting::MarkerSighting;
@@ -234,6 +235,8 @@ impl FollowedMerge {
 
 /// Tracks one robot's frames in the maps it started.
 pub struct Tracker {
+    /// Names the tracker's requests to the maps' writers.
+    id: TrackerId,
     config: TrackerConfig,
     extractor: OrbExtractor,
     rig: Option<Rig>,
@@ -258,6 +261,7 @@ impl Tracker {
     pub fn new(config: TrackerConfig) -> Result<Self, TrackError> {
         let extractor = OrbExtractor::new(config.orb.clone())?;
         Ok(Self {
+            id: TrackerId::unique(),
             relocaliser: Relocaliser::new(config.relocalisation_candidates),
             local_map: LocalMapSearch::new(config.min_inliers),
             config,
@@ -837,6 +841,7 @@ impl Tracker {
         let mut keyframe = None;
         if needs_keyframe {
             let request = KeyframeRequest {
+                tracker: self.id,
                 frame: frame.clone(),
                 rig: rig.clone(),
                 world_from_camera: tracked.world_from_camera,
