@@ -49,6 +49,10 @@ pub struct GlobalReport {
     /// Sightings left out of the second solve (the first could not explain them); they are
     /// dropped from their markers when the result is applied.
     pub outliers: usize,
+    /// Loop edges left out of the second solve: the first bent them beyond what a relative
+    /// pose may bend (the rest of the map disagrees with them). They stay in the map and are
+    /// tried again in the next optimisation.
+    pub loops_left_out: usize,
     /// Solver iterations, and the time the solves took, milliseconds.
     pub iterations: usize,
     pub solve_ms: f64,
@@ -202,10 +206,29 @@ impl GlobalJob {
         self.keyframes[index].1
     }
 
-    /// The problem, without the sightings in `skip`.
-    fn problem(&self, skip: &HashSet<usize>) -> (Problem, WallReport) {
-        let mut problem = Problem::new(self.values.clone());
-        for edge in &self.edges {
+    /// The problem, without the sightings in `skip.sightings` and the edges in `skip.edges`. A
+    /// marker left with no sighting is held where it is and kept off its wall: a wall alone
+    /// fixes only its normal and its distance, so the solver could slide it anywhere along the
+    /// plane.
+    fn problem(&self, skip: &Skip) -> (Problem, WallReport) {
+        let seen: HashSet<i32> = self
+            .sighted
+            .iter()
+            .enumerate()
+            .filter(|(index, _)| !skip.sightings.contains(index))
+            .map(|(_, &(id, _, _))| id)
+            .collect();
+        let mut values = self.values.clone();
+        let mut markers = Vec::with_capacity(self.markers.len());
+        for var in &self.markers {
+            if seen.contains(&var.id) {
+                markers.push(*var);
+            } else {
+                values.set_fixed(var.key.id, true);
+            }
+        }
+        let mut problem = Problem::new(values);
+        for (_, edge) in self.kept_edges(skip) {
             problem
                 .add(
                     BetweenFactor::new(
@@ -220,7 +243,7 @@ impl GlobalJob {
                 .expect("keys made with the values");
         }
         for (index, factor) in self.sightings.iter().enumerate() {
-            if skip.contains(&index) {
+            if skip.sightings.contains(&index) {
                 continue;
             }
             problem
@@ -234,16 +257,39 @@ impl GlobalJob {
         let walls = add_wall_terms(
             &mut problem,
             &self.walls,
-            &self.markers,
+            &markers,
             &[],
             &WallTerms::default(),
         );
         (problem, walls)
     }
 
-    /// Solves the job: once with every sighting, then again without those the first result
-    /// cannot explain. Refuses (no solution) a result that bends a relative pose beyond what
-    /// its shared points allow: then the markers are wrong (a misread id, a moved marker).
+    /// The edges not in `skip.edges`, with their indices.
+    fn kept_edges<'a>(&'a self, skip: &'a Skip) -> impl Iterator<Item = (usize, &'a Edge)> + 'a {
+        self.edges
+            .iter()
+            .enumerate()
+            .filter(|(index, _)| !skip.edges.contains(index))
+    }
+
+    /// How far `solution` bends edge `edge` from its relative pose: χ² over its sigmas.
+    fn bend(&self, edge: &Edge, solution: &Values) -> f64 {
+        let after = solution
+            .get(self.pose_key(edge.i))
+            .inverse()
+            .compose(solution.get(self.pose_key(edge.j)));
+        let r = edge.i_from_j.local(&after);
+        let sigmas = edge.sigmas(self.bf);
+        (0..6).map(|c| (r[c] / sigmas[c]).powi(2)).sum()
+    }
+
+    /// Solves the job: once with everything, then again without what the first result cannot
+    /// explain: marker sightings beyond their χ² (misread ids, bad corners) and loop edges bent
+    /// beyond [`CHI2_6D_REJECT`] (a loop the rest of the map disagrees with, or one between two
+    /// robots' held windows that cannot move yet: without leaving it out, one such loop would
+    /// refuse every optimisation after it). Refuses (no solution) a result that still bends a
+    /// relative pose beyond what its shared points allow: then the markers are wrong (a
+    /// misread id, a moved marker).
     pub fn solve(mut self) -> SolvedGlobal {
         let options = Options {
             max_iterations: self.iterations,
@@ -251,7 +297,7 @@ impl GlobalJob {
             threads: THREADS,
             ..Options::default()
         };
-        let (mut problem, first_walls) = self.problem(&HashSet::new());
+        let (mut problem, first_walls) = self.problem(&Skip::default());
         self.report.initial_cost = problem.cost();
         let first = match Solver::new(options.clone()).solve(&mut problem) {
             Ok(first) => first,
@@ -264,18 +310,28 @@ impl GlobalJob {
         };
         self.report.iterations = first.iterations.len();
         self.report.solve_ms = first.total_time.as_secs_f64() * 1e3;
-        let outliers: HashSet<usize> = self
-            .sightings
-            .iter()
-            .enumerate()
-            .filter(|(_, f)| chi2_of(f, problem.values()) > chi2_limit(f))
-            .map(|(i, _)| i)
-            .collect();
-        self.report.outliers = outliers.len();
-        let (problem, wall_report) = if outliers.is_empty() {
+        let skip = Skip {
+            sightings: self
+                .sightings
+                .iter()
+                .enumerate()
+                .filter(|(_, f)| chi2_of(f, problem.values()) > chi2_limit(f))
+                .map(|(i, _)| i)
+                .collect(),
+            edges: self
+                .edges
+                .iter()
+                .enumerate()
+                .filter(|(_, e)| e.closes_loop && self.bend(e, problem.values()) > CHI2_6D_REJECT)
+                .map(|(i, _)| i)
+                .collect(),
+        };
+        self.report.outliers = skip.sightings.len();
+        self.report.loops_left_out = skip.edges.len();
+        let (problem, wall_report) = if skip.sightings.is_empty() && skip.edges.is_empty() {
             (problem, first_walls)
         } else {
-            let (mut problem, walls) = self.problem(&outliers);
+            let (mut problem, walls) = self.problem(&skip);
             match Solver::new(options).solve(&mut problem) {
                 Ok(second) => {
                     self.report.iterations += second.iterations.len();
@@ -293,17 +349,20 @@ impl GlobalJob {
         self.report.walls = wall_report;
         self.report.final_cost = problem.cost();
         let solution = problem.values();
-        let bent = self.edges.iter().any(|edge| {
-            let after = solution
-                .get(self.pose_key(edge.i))
-                .inverse()
-                .compose(solution.get(self.pose_key(edge.j)));
-            let r = edge.i_from_j.local(&after);
-            let sigmas = edge.sigmas(self.bf);
-            let chi2: f64 = (0..6).map(|c| (r[c] / sigmas[c]).powi(2)).sum();
-            chi2 > CHI2_6D_REJECT
-        });
-        if bent {
+        let bent = self
+            .kept_edges(&skip)
+            .map(|(_, edge)| (edge, self.bend(edge, solution)))
+            .filter(|(_, chi2)| *chi2 > CHI2_6D_REJECT)
+            .max_by(|a, b| a.1.total_cmp(&b.1));
+        if let Some((edge, chi2)) = bent {
+            tracing::debug!(
+                i = edge.i.0,
+                j = edge.j.0,
+                closes_loop = edge.closes_loop,
+                shared = edge.shared,
+                chi2,
+                "the edge bent most"
+            );
             return SolvedGlobal {
                 job: self,
                 outcome: Ok(None),
@@ -317,9 +376,16 @@ impl GlobalJob {
         let solution = solution.clone();
         SolvedGlobal {
             job: self,
-            outcome: Ok(Some((solution, outliers))),
+            outcome: Ok(Some((solution, skip.sightings))),
         }
     }
+}
+
+/// What the second solve of a job leaves out (indices into its sightings and edges).
+#[derive(Default)]
+struct Skip {
+    sightings: HashSet<usize>,
+    edges: HashSet<usize>,
 }
 
 /// Writes a solved whole-map optimisation into `map`, which may have changed since the job was
@@ -714,6 +780,80 @@ mod tests {
                 .collect();
             assert_eq!(kept, [0, 1]);
         }
+    }
+
+    #[test]
+    fn a_marker_whose_every_sighting_is_an_outlier_stays_where_it_was() {
+        let rig = rig();
+        let (mut map, _) = drifted_map();
+        // Marker 7 hangs on marker 5's wall, 0.5 m along it; keyframe 20 alone saw it, and
+        // misread: its corners 120 px off, an outlier of the first solve. Left with only its
+        // wall, nothing holds it along the wall's plane.
+        let world_from_7 = marker_pose().compose(&Se3::new(
+            UnitQuaternion::identity(),
+            Vector3::new(0.5, 0.0, 0.0),
+        ));
+        let mut misread = sighting_from(&true_pose(20), 5);
+        misread.id = 7;
+        for corner in &mut misread.corners {
+            corner.x += 120.0;
+        }
+        map.keyframes[20].frame.markers.push(misread);
+        map.markers.insert(
+            7,
+            MapMarker {
+                id: 7,
+                side_m: SIDE,
+                world_from_marker: world_from_7,
+                observations: vec![(KeyFrameId(20), 0)],
+            },
+        );
+        let normal = nalgebra::Unit::new_normalize(marker_pose().rotation * Vector3::z());
+        let wall = WallPrior {
+            plane: vsgraphs_optim::Plane::from_point_normal(&marker_pose().translation, &normal),
+            markers: vec![5, 7],
+        };
+        let hold: HashSet<KeyFrameId> = [N - 2, N - 1].map(|k| KeyFrameId(k as u32)).into();
+        let report = optimise_map(&mut map, &rig, &[wall], &hold, 20).unwrap();
+        assert!(report.applied && report.outliers == 1, "{report:?}");
+        let after = map.markers[&7].world_from_marker;
+        assert!(
+            after.local(&world_from_7).norm() < 1e-9,
+            "moved by {} m: {report:?}",
+            (after.translation - world_from_7.translation).norm()
+        );
+    }
+
+    #[test]
+    fn a_loop_the_held_keyframes_cannot_follow_is_left_out_not_the_whole_solve() {
+        let rig = rig();
+        let (mut map, _) = drifted_map();
+        let (moved_before, _) = loop_error(&map);
+        // A loop between the two held keyframes, 0.5 m from where the map has them: no
+        // solution can bend it back (both are fixed).
+        let (older, newer) = (KeyFrameId(N as u32 - 2), KeyFrameId(N as u32 - 1));
+        let mapped = map
+            .keyframe(older)
+            .world_from_camera
+            .inverse()
+            .compose(&map.keyframe(newer).world_from_camera);
+        let off = Se3::new(UnitQuaternion::identity(), Vector3::new(0.5, 0.0, 0.0));
+        map.loop_edges.push(LoopEdge {
+            older,
+            newer,
+            older_from_newer: mapped.compose(&off),
+            inliers: 100,
+        });
+        let hold: HashSet<KeyFrameId> = [older, newer].into();
+        let report = optimise_map(&mut map, &rig, &[], &hold, 20).unwrap();
+        assert!(report.applied && report.loops_left_out == 1, "{report:?}");
+        // The marker seen again still closed the loop, and the loop edge stays for later.
+        let (moved_after, _) = loop_error(&map);
+        assert!(
+            moved_after < 0.2 * moved_before,
+            "{moved_before} -> {moved_after}"
+        );
+        assert_eq!(map.loop_edges.len(), 1);
     }
 
     #[test]
