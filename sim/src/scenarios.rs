@@ -258,9 +258,11 @@ pub fn routes(name: &str) -> Option<Vec<Route>> {
                 visit("Lab", Points(vec![[2.0, 2.5]])),
             ],
         ),
-        // Each robot enters the hall by its own door and keeps to its half: both see the
-        // south and north walls, only one the west wall, only the other the east wall. Both
-        // walk the middle of the corridor, whose markers tell where their maps meet.
+        // Each robot enters the hall by its own door and keeps to its half: both pass near
+        // enough to the markers in the middle of the south and north walls to map them, only
+        // one to the west wall's, only the other to the east wall's, so the hall is a room only
+        // in their joined map. Both walk the middle of the corridor, whose markers tell where
+        // their maps meet.
         "two_robots" => vec![
             route(
                 "robot-1",
@@ -273,8 +275,9 @@ pub fn routes(name: &str) -> Option<Vec<Route>> {
                             [4.0, 4.5],
                             [3.2, 6.0],
                             [4.0, 7.5],
-                            [6.5, 8.5],
-                            [6.5, 4.0],
+                            [7.0, 8.0],
+                            [7.4, 8.7],
+                            [7.0, 3.5],
                         ]),
                     ),
                     visit("Corridor", Points(vec![[11.0, 1.0], [1.0, 1.0]])),
@@ -291,8 +294,9 @@ pub fn routes(name: &str) -> Option<Vec<Route>> {
                             [12.0, 4.5],
                             [12.8, 6.0],
                             [12.0, 7.5],
-                            [9.5, 8.5],
-                            [9.5, 4.0],
+                            [9.0, 8.0],
+                            [8.6, 8.7],
+                            [9.0, 3.5],
                         ]),
                     ),
                     // Back along the corridor past the middle, where robot-1 mapped too.
