@@ -345,6 +345,7 @@ impl MapRecord {
                 world_from_camera: pose_of(&k.world_from_camera),
                 points,
                 parent,
+                previous: None,
             });
         }
         // A culled keyframe's pose is its parents' composed: the chain must end.
@@ -440,6 +441,13 @@ impl MapRecord {
             .into_iter()
             .map(|k| keyframe(k, "a trajectory start"))
             .collect::<Result<BTreeSet<_>, _>>()?;
+        // Files do not record which robot made each keyframe: each follows the one before it
+        // in the arena, but where a merged map's part begins.
+        for (i, k) in keyframes.iter_mut().enumerate().skip(1) {
+            if !trajectory_starts.contains(&KeyFrameId(i as u32)) {
+                k.previous = Some(KeyFrameId(i as u32 - 1));
+            }
+        }
         if self.neighbours.len() > n {
             return bad(format!(
                 "covisibility for {} keyframes of {n}",

@@ -228,7 +228,7 @@ impl GlobalJob {
             }
         }
         let mut problem = Problem::new(values);
-        for (_, edge) in self.kept_edges(skip) {
+        for edge in self.kept_edges(skip) {
             problem
                 .add(
                     BetweenFactor::new(
@@ -264,12 +264,13 @@ impl GlobalJob {
         (problem, walls)
     }
 
-    /// The edges not in `skip.edges`, with their indices.
-    fn kept_edges<'a>(&'a self, skip: &'a Skip) -> impl Iterator<Item = (usize, &'a Edge)> + 'a {
+    /// The edges not in `skip.edges`.
+    fn kept_edges<'a>(&'a self, skip: &'a Skip) -> impl Iterator<Item = &'a Edge> + 'a {
         self.edges
             .iter()
             .enumerate()
             .filter(|(index, _)| !skip.edges.contains(index))
+            .map(|(_, edge)| edge)
     }
 
     /// How far `solution` bends edge `edge` from its relative pose: χ² over its sigmas.
@@ -351,7 +352,7 @@ impl GlobalJob {
         let solution = problem.values();
         let bent = self
             .kept_edges(&skip)
-            .map(|(_, edge)| (edge, self.bend(edge, solution)))
+            .map(|edge| (edge, self.bend(edge, solution)))
             .filter(|(_, chi2)| *chi2 > CHI2_6D_REJECT)
             .max_by(|a, b| a.1.total_cmp(&b.1));
         if let Some((edge, chi2)) = bent {
@@ -474,7 +475,10 @@ fn chi2_limit(factor: &MarkerCornersFactor) -> f64 {
     }
 }
 
-/// Consecutive live keyframes, and keyframes sharing [`ESSENTIAL_SHARED`] points, once each.
+/// Each live keyframe and the one its robot made before it ([`KeyFrame::previous`]), keyframes
+/// sharing [`ESSENTIAL_SHARED`] points, and loops, once each.
+///
+/// [`KeyFrame::previous`]: crate::map::KeyFrame::previous
 fn essential_edges(map: &Map, live: &[KeyFrameId]) -> Vec<Edge> {
     let is_live: HashSet<KeyFrameId> = live.iter().copied().collect();
     let mut seen: HashSet<(KeyFrameId, KeyFrameId)> = HashSet::new();
@@ -495,22 +499,23 @@ fn essential_edges(map: &Map, live: &[KeyFrameId]) -> Vec<Edge> {
             });
         }
     };
-    for pair in live.windows(2) {
-        // A keyframe that starts a trajectory of its own (a merged map's first) does not
-        // follow the keyframe before it.
-        if map
-            .trajectory_starts
-            .range(pair[0]..=pair[1])
-            .any(|&s| s > pair[0])
-        {
-            continue;
+    // Each keyframe follows the live keyframe its robot made before it: robots that map one
+    // place at once insert their keyframes in turn, and nothing but shared points relates one
+    // robot's keyframe to the other's made just before.
+    for &k in live {
+        let mut previous = map.keyframe(k).previous;
+        while let Some(p) = previous.filter(|&p| !is_live.contains(&p)) {
+            previous = map.keyframe(p).previous;
         }
+        let Some(previous) = previous else {
+            continue;
+        };
         let shared = map
-            .neighbours(pair[1])
+            .neighbours(k)
             .iter()
-            .find(|(k, _)| *k == pair[0])
+            .find(|(n, _)| *n == previous)
             .map_or(0, |(_, n)| *n);
-        add(pair[0], pair[1], shared, &mut edges);
+        add(previous, k, shared, &mut edges);
     }
     for &k in live {
         for &(other, shared) in map.neighbours(k) {
@@ -890,29 +895,59 @@ mod tests {
         assert!(map.keyframe(added).world_from_camera.local(&pose).norm() < 1e-12);
     }
 
+    /// The essential graph's edges among `live` keyframes, as pairs of ids.
+    fn edge_pairs(map: &Map, live: &[KeyFrameId]) -> Vec<(u32, u32)> {
+        essential_edges(map, live)
+            .iter()
+            .map(|e| (e.i.0, e.j.0))
+            .collect()
+    }
+
+    /// Every keyframe of `map` but `culled`.
+    fn live_but(map: &Map, culled: &[u32]) -> Vec<KeyFrameId> {
+        map.keyframes
+            .iter()
+            .map(|k| k.id)
+            .filter(|k| !culled.contains(&k.0))
+            .collect()
+    }
+
     #[test]
     fn a_merged_maps_first_keyframe_does_not_follow_the_keyframe_before_it() {
         let (mut map, _) = drifted_map();
-        let live: Vec<KeyFrameId> = map.keyframes.iter().map(|k| k.id).collect();
-        let pairs = |map: &Map| -> Vec<(u32, u32)> {
-            essential_edges(map, &live)
-                .iter()
-                .map(|e| (e.i.0, e.j.0))
-                .collect()
-        };
-        assert!(pairs(&map).contains(&(19, 20)));
-        map.trajectory_starts.insert(KeyFrameId(20));
-        let edges = pairs(&map);
+        assert!(edge_pairs(&map, &live_but(&map, &[])).contains(&(19, 20)));
+        // As a merge leaves the first keyframe of the part it moved in.
+        map.keyframes[20].previous = None;
+        let edges = edge_pairs(&map, &live_but(&map, &[]));
         assert!(!edges.contains(&(19, 20)), "{edges:?}");
         assert!(edges.contains(&(18, 19)) && edges.contains(&(20, 21)));
         // Nor when the keyframe before the start was culled: 18 is then followed by 20.
         map.keyframes[19].parent = Some((KeyFrameId(18), Se3::identity()));
-        let live: Vec<KeyFrameId> = live.into_iter().filter(|k| k.0 != 19).collect();
-        let edges: Vec<(u32, u32)> = essential_edges(&map, &live)
-            .iter()
-            .map(|e| (e.i.0, e.j.0))
-            .collect();
+        let edges = edge_pairs(&map, &live_but(&map, &[19]));
         assert!(!edges.contains(&(18, 20)), "{edges:?}");
+    }
+
+    #[test]
+    fn two_robots_keyframes_made_in_turn_follow_their_own_robots() {
+        // Even keyframes are one robot's, odd ones another's, inserted in turn; they share no
+        // point across robots.
+        let (mut map, _) = drifted_map();
+        for k in 2..N {
+            map.keyframes[k].previous = Some(KeyFrameId(k as u32 - 2));
+        }
+        map.keyframes[1].previous = None;
+        let edges = edge_pairs(&map, &live_but(&map, &[]));
+        for k in 2..N as u32 {
+            assert!(edges.contains(&(k - 2, k)), "{k}: {edges:?}");
+            assert!(!edges.contains(&(k - 1, k)), "{k}: {edges:?}");
+        }
+        // A culled keyframe passes its robot's turn on: 10 follows 6 once 8 is culled.
+        map.keyframes[8].parent = Some((KeyFrameId(6), Se3::identity()));
+        let edges = edge_pairs(&map, &live_but(&map, &[8]));
+        assert!(
+            edges.contains(&(6, 10)) && !edges.contains(&(9, 10)),
+            "{edges:?}"
+        );
     }
 
     #[test]

@@ -135,6 +135,9 @@ pub struct KeyframeRequest {
     pub points: Vec<Option<MapPointId>>,
     /// The tracker's reference keyframe, which keyframe culling keeps.
     pub reference: Option<KeyFrameId>,
+    /// The keyframe the tracker made before in this map, which the new one follows
+    /// ([`crate::map::KeyFrame::previous`]); none after it came into the map another way.
+    pub previous: Option<KeyFrameId>,
     /// Statistics of the frames tracked since the tracker's last request.
     pub statistics: PointStatistics,
 }
@@ -453,6 +456,7 @@ impl LocalMapper {
             world_from_camera,
             points,
             reference,
+            previous,
             statistics,
         } = request;
         statistics.apply(map);
@@ -482,6 +486,8 @@ impl LocalMapper {
             }
         }
         let (k, created) = mapping::insert_keyframe(map, &rig, frame, pose, &points);
+        // Only an older keyframe: the chain the essential graph walks back must end.
+        map.keyframe_mut(k).previous = previous.filter(|&p| p < k);
         self.heads.advance(map, reference, k);
         self.recent_points.keyframe(tracker);
         self.recent_points.watch(tracker, created);
@@ -564,7 +570,6 @@ impl LocalMapper {
     }
 }
 
-/// The newest keyframe not culled.
 /// Robots writing to one map at most, as far as [`Heads`] keeps track.
 const MAX_HEADS: usize = 8;
 
@@ -640,6 +645,7 @@ impl Heads {
     }
 }
 
+/// The newest keyframe not culled.
 fn newest_live(map: &Map) -> Option<KeyFrameId> {
     map.keyframes
         .iter()

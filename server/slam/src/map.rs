@@ -23,6 +23,10 @@ pub struct KeyFrame {
     /// covisibility and everything built on it pass it by; frames anchored to it follow
     /// its parent ([`Map::world_from_keyframe`]).
     pub parent: Option<(KeyFrameId, Se3)>,
+    /// The keyframe the same robot made before this one in this map (none: the first of a
+    /// trajectory): robots that map one place at once insert their keyframes in turn, so the
+    /// keyframe before in the arena may be another robot's.
+    pub previous: Option<KeyFrameId>,
 }
 
 impl KeyFrame {
@@ -193,6 +197,8 @@ impl Map {
         Some(parent)
     }
 
+    /// A new keyframe, after the arena's last as one robot's map grows
+    /// ([`KeyFrame::previous`]; its writer says otherwise when robots share the map).
     pub fn add_keyframe(&mut self, frame: Frame, world_from_camera: Se3) -> KeyFrameId {
         let id = KeyFrameId(self.keyframes.len() as u32);
         let n = frame.len();
@@ -203,6 +209,7 @@ impl Map {
             world_from_camera,
             points: vec![None; n],
             parent: None,
+            previous: id.0.checked_sub(1).map(KeyFrameId),
         });
         id
     }

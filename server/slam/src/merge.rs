@@ -878,6 +878,7 @@ pub fn absorb(target: &mut Map, source: &Map, alignment: &Alignment) -> Absorbed
         if let Some((parent, _)) = &mut k.parent {
             *parent = absorbed.keyframe(*parent);
         }
+        k.previous = k.previous.map(|p| absorbed.keyframe(p));
         if let Some(bag) = source.places.bag(source_id) {
             target.places.insert(k.id, bag.clone());
         }

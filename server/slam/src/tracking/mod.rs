@@ -247,6 +247,8 @@ pub struct Tracker {
     /// Motion over the last interval (`previous⁻¹ · last`) and its length in ns.
     velocity: Option<(Se3, u64)>,
     reference: Option<KeyFrameId>,
+    /// The keyframe the tracker made last in its active map, while it tracks on from it.
+    last_keyframe: Option<KeyFrameId>,
     lost_since_ns: Option<u64>,
     relocalised_ns: Option<u64>,
     relocaliser: Relocaliser,
@@ -272,6 +274,7 @@ impl Tracker {
             last: None,
             velocity: None,
             reference: None,
+            last_keyframe: None,
             lost_since_ns: None,
             relocalised_ns: None,
             statistics: PointStatistics::default(),
@@ -593,6 +596,7 @@ impl Tracker {
                 self.statistics = statistics;
                 self.maps.push(map.clone());
                 self.reference = None;
+                self.last_keyframe = None;
                 self.last = None;
                 self.velocity = None;
                 self.relocaliser.reset();
@@ -659,6 +663,7 @@ impl Tracker {
             last.moved(&correction, |p| moved.point(p));
         }
         self.reference = self.reference.map(|k| moved.keyframe(k));
+        self.last_keyframe = self.last_keyframe.map(|k| moved.keyframe(k));
         self.statistics.rename(|p| moved.point(p));
         self.relocaliser.reset();
     }
@@ -683,6 +688,7 @@ impl Tracker {
         self.last = None;
         self.velocity = None;
         self.reference = None;
+        self.last_keyframe = None;
         self.lost_since_ns = None;
         self.relocaliser.reset();
     }
@@ -715,6 +721,7 @@ impl Tracker {
         let pose = Se3::identity();
         self.last = Some(LastFrame::new(&map.read(), kept, pose, points));
         self.reference = Some(keyframe);
+        self.last_keyframe = Some(keyframe);
         self.state = TrackingState::Tracking;
         result.world_from_camera = Some(pose);
         result.inliers = created;
@@ -847,6 +854,7 @@ impl Tracker {
                 world_from_camera: tracked.world_from_camera,
                 points: tracked.points,
                 reference: self.reference,
+                previous: self.last_keyframe,
                 statistics: std::mem::take(&mut self.statistics),
             };
             let reply = writer.request(map, MapRequest::Insert(request))?;
@@ -864,6 +872,7 @@ impl Tracker {
             world_from_camera = pose;
             last_points = points;
             self.reference = Some(k);
+            self.last_keyframe = Some(k);
             keyframe = Some(k);
         }
         result.anchor = self.reference.map(|k| Anchor {
