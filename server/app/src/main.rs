@@ -135,27 +135,48 @@ enum Command {
     },
 }
 
-/// Waits for Ctrl-C or SIGTERM (what service managers and container runtimes send), and says
-/// which came: both stop the server in order (robots' workers drained, maps' writers ended).
-async fn stop_signal() -> anyhow::Result<&'static str> {
+/// Ctrl-C and SIGTERM (what service managers and container runtimes send), listened for from
+/// the moment this is made: a signal that comes while the server starts, or right after it
+/// says it serves, is not lost, and both stop the server in order (robots' workers drained,
+/// maps' writers ended).
+struct StopSignals {
     #[cfg(unix)]
-    {
-        use tokio::signal::unix::{signal, SignalKind};
-        let mut terminate = signal(SignalKind::terminate()).context("listening for SIGTERM")?;
-        tokio::select! {
-            interrupted = tokio::signal::ctrl_c() => {
-                interrupted.context("waiting for Ctrl-C")?;
-                Ok("interrupted")
-            }
-            _ = terminate.recv() => Ok("SIGTERM"),
+    interrupt: tokio::signal::unix::Signal,
+    #[cfg(unix)]
+    terminate: tokio::signal::unix::Signal,
+}
+
+impl StopSignals {
+    fn listen() -> anyhow::Result<Self> {
+        #[cfg(unix)]
+        {
+            use tokio::signal::unix::{signal, SignalKind};
+            Ok(Self {
+                interrupt: signal(SignalKind::interrupt()).context("listening for Ctrl-C")?,
+                terminate: signal(SignalKind::terminate()).context("listening for SIGTERM")?,
+            })
         }
+        #[cfg(not(unix))]
+        Ok(Self {})
     }
-    #[cfg(not(unix))]
-    {
-        tokio::signal::ctrl_c()
-            .await
-            .context("waiting for Ctrl-C")?;
-        Ok("interrupted")
+
+    /// Waits for either, and says which came.
+    async fn wait(mut self) -> anyhow::Result<&'static str> {
+        #[cfg(unix)]
+        {
+            tokio::select! {
+                _ = self.interrupt.recv() => Ok("interrupted"),
+                _ = self.terminate.recv() => Ok("SIGTERM"),
+            }
+        }
+        #[cfg(not(unix))]
+        {
+            let _ = &mut self;
+            tokio::signal::ctrl_c()
+                .await
+                .context("waiting for Ctrl-C")?;
+            Ok("interrupted")
+        }
     }
 }
 
@@ -310,12 +331,13 @@ async fn main() -> anyhow::Result<()> {
     let config = effective_config(&cli)?;
     match cli.command.unwrap_or(Command::Serve) {
         Command::Serve => {
+            let stop = StopSignals::listen()?;
             let server = Server::start(config).await?;
             println!(
                 "vsgraphs server: page and API at http://{}/ (Ctrl-C stops)",
                 server.http_addr()
             );
-            let signal = stop_signal().await?;
+            let signal = stop.wait().await?;
             eprintln!("{signal}: stopping");
             server.stop().await?;
             eprintln!("stopped");
