@@ -13,7 +13,9 @@
 //! map id), and `frames`, `states`, `words`, `points` (rows keyed by map id << 32 | index).
 //! Reading refuses a store of another format and a map any of whose rows is missing, changed
 //! (each row has its own CRC-32) or inconsistent with the rest, with what is wrong: a store is
-//! loaded whole or not at all.
+//! loaded whole or not at all. A store whose records are of an older format still read is
+//! upgraded when it is opened: every map read in the old format and written whole in the new,
+//! with the format, in one transaction (so a kill leaves it old or new, never half).
 
 use redb::{Database, ReadableDatabase, ReadableTable, TableDefinition};
 use std::collections::{BTreeMap, VecDeque};
@@ -21,7 +23,7 @@ use std::path::{Path, PathBuf};
 use std::sync::{mpsc, Arc, Mutex};
 use std::thread::JoinHandle;
 use vsgraphs_slam::archive::rows::{self, Changes, RowKind, StoredRows};
-use vsgraphs_slam::archive::{ArchiveError, FORMAT_VERSION};
+use vsgraphs_slam::archive::{ArchiveError, FORMAT_VERSION, OLDEST_FORMAT};
 use vsgraphs_slam::{Map, MapId};
 
 /// The store's layout (tables and keys); a store of another is refused.
@@ -57,7 +59,7 @@ fn keys_of(map: MapId) -> std::ops::Range<u64> {
 pub enum StoreError {
     #[error("{}: cannot open the map store: {reason}", path.display())]
     Open { path: PathBuf, reason: String },
-    #[error("{}: the map store is format {found} with records of format {records}; this server reads format {STORE_FORMAT} with records of format {FORMAT_VERSION}", path.display())]
+    #[error("{}: the map store is format {found} with records of format {records}; this server reads format {STORE_FORMAT} with records of formats {OLDEST_FORMAT} to {FORMAT_VERSION}", path.display())]
     Version {
         path: PathBuf,
         found: u32,
@@ -111,7 +113,10 @@ impl Store {
             db,
             path: path.to_owned(),
         };
-        store.check_format()?;
+        let records = store.check_format()?;
+        if records != FORMAT_VERSION {
+            store.upgrade(records)?;
+        }
         Ok(store)
     }
 
@@ -126,11 +131,11 @@ impl Store {
         }
     }
 
-    /// Sets a new store's format, or checks an old one's.
-    fn check_format(&self) -> Result<(), StoreError> {
+    /// Sets a new store's format, or checks an old one's: the format its records are in.
+    fn check_format(&self) -> Result<u32, StoreError> {
         let e = |e: redb::Error| self.database(e);
         let txn = self.db.begin_write().map_err(|x| e(x.into()))?;
-        {
+        let records = {
             let mut meta = txn.open_table(META).map_err(|x| e(x.into()))?;
             let found = meta
                 .get("store")
@@ -141,12 +146,17 @@ impl Store {
                 .map_err(|x| e(x.into()))?
                 .map(|v| v.value());
             match (found, records) {
-                (Some(STORE_FORMAT), Some(FORMAT_VERSION)) => {}
+                (Some(STORE_FORMAT), Some(records))
+                    if (OLDEST_FORMAT..=FORMAT_VERSION).contains(&records) =>
+                {
+                    records
+                }
                 (None, None) => {
                     meta.insert("store", STORE_FORMAT)
                         .map_err(|x| e(x.into()))?;
                     meta.insert("records", FORMAT_VERSION)
                         .map_err(|x| e(x.into()))?;
+                    FORMAT_VERSION
                 }
                 (found, records) => {
                     return Err(StoreError::Version {
@@ -156,12 +166,49 @@ impl Store {
                     })
                 }
             }
+        };
+        txn.commit().map_err(|x| e(x.into()))?;
+        Ok(records)
+    }
+
+    /// Rewrites a store whose records are of the older format `records`: every map read in it
+    /// and written whole in today's, in one transaction with the new format.
+    fn upgrade(&self, records: u32) -> Result<(), StoreError> {
+        let maps = self.maps_in(records)?;
+        let saves: Vec<Save> = maps
+            .iter()
+            .map(|(id, map)| Save {
+                map: *id,
+                changes: rows::Ledger::new().changes(map),
+                retire: Vec::new(),
+            })
+            .collect();
+        let e = |e: redb::Error| self.database(e);
+        let txn = self.db.begin_write().map_err(|x| e(x.into()))?;
+        put(&txn, &saves).map_err(e)?;
+        {
+            let mut meta = txn.open_table(META).map_err(|x| e(x.into()))?;
+            meta.insert("records", FORMAT_VERSION)
+                .map_err(|x| e(x.into()))?;
         }
-        txn.commit().map_err(|x| e(x.into()))
+        txn.commit().map_err(|x| e(x.into()))?;
+        tracing::info!(
+            path = %self.path.display(),
+            maps = maps.len(),
+            from = records,
+            to = FORMAT_VERSION,
+            "map store's records upgraded"
+        );
+        Ok(())
     }
 
     /// Every map in the store, each read whole and checked.
     pub fn maps(&self) -> Result<Vec<(MapId, Map)>, StoreError> {
+        self.maps_in(FORMAT_VERSION)
+    }
+
+    /// Every map in the store, its records read as of format `records`.
+    fn maps_in(&self, records: u32) -> Result<Vec<(MapId, Map)>, StoreError> {
         let e = |e: redb::Error| self.database(e);
         let txn = self.db.begin_read().map_err(|x| e(x.into()))?;
         let headers = match txn.open_table(HEADERS) {
@@ -215,6 +262,7 @@ impl Store {
                     .collect()
             };
             let stored = StoredRows {
+                format: records,
                 header,
                 frames: whole(RowKind::Frame, keyframes)?,
                 states: whole(RowKind::State, keyframes)?,
@@ -230,48 +278,44 @@ impl Store {
     pub fn write(&self, saves: &[Save]) -> Result<(), StoreError> {
         let e = |e: redb::Error| self.database(e);
         let txn = self.db.begin_write().map_err(|x| e(x.into()))?;
-        {
-            let mut headers = txn.open_table(HEADERS).map_err(|x| e(x.into()))?;
-            let mut tables = [
-                txn.open_table(FRAMES).map_err(|x| e(x.into()))?,
-                txn.open_table(STATES).map_err(|x| e(x.into()))?,
-                txn.open_table(WORDS).map_err(|x| e(x.into()))?,
-                txn.open_table(POINTS).map_err(|x| e(x.into()))?,
-            ];
-            let index = |kind: RowKind| match kind {
-                RowKind::Frame => 0,
-                RowKind::State => 1,
-                RowKind::Words => 2,
-                RowKind::Point => 3,
-            };
-            for save in saves {
-                for &gone in &save.retire {
-                    headers.remove(gone.0).map_err(|x| e(x.into()))?;
-                    for table in &mut tables {
-                        table
-                            .retain_in(keys_of(gone), |_, _| false)
-                            .map_err(|x| e(x.into()))?;
-                    }
-                }
-                if let Some(header) = &save.changes.header {
-                    headers
-                        .insert(save.map.0, header.as_slice())
-                        .map_err(|x| e(x.into()))?;
-                }
-                for (kind, i, bytes) in &save.changes.rows {
-                    tables[index(*kind)]
-                        .insert(key(save.map, *i), bytes.as_slice())
-                        .map_err(|x| e(x.into()))?;
-                }
-                for (kind, i) in &save.changes.removed {
-                    tables[index(*kind)]
-                        .remove(key(save.map, *i))
-                        .map_err(|x| e(x.into()))?;
-                }
-            }
-        }
+        put(&txn, saves).map_err(e)?;
         txn.commit().map_err(|x| e(x.into()))
     }
+}
+
+/// Puts `saves` into the transaction `txn`.
+fn put(txn: &redb::WriteTransaction, saves: &[Save]) -> Result<(), redb::Error> {
+    let mut headers = txn.open_table(HEADERS)?;
+    let mut tables = [
+        txn.open_table(FRAMES)?,
+        txn.open_table(STATES)?,
+        txn.open_table(WORDS)?,
+        txn.open_table(POINTS)?,
+    ];
+    let index = |kind: RowKind| match kind {
+        RowKind::Frame => 0,
+        RowKind::State => 1,
+        RowKind::Words => 2,
+        RowKind::Point => 3,
+    };
+    for save in saves {
+        for &gone in &save.retire {
+            headers.remove(gone.0)?;
+            for table in &mut tables {
+                table.retain_in(keys_of(gone), |_, _| false)?;
+            }
+        }
+        if let Some(header) = &save.changes.header {
+            headers.insert(save.map.0, header.as_slice())?;
+        }
+        for (kind, i, bytes) in &save.changes.rows {
+            tables[index(*kind)].insert(key(save.map, *i), bytes.as_slice())?;
+        }
+        for (kind, i) in &save.changes.removed {
+            tables[index(*kind)].remove(key(save.map, *i))?;
+        }
+    }
+    Ok(())
 }
 
 /// The store's thread and what it has made durable.
@@ -454,6 +498,37 @@ impl SaverState {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// The format of the records in the store at `path`.
+    fn records_format(store: &Store) -> Option<u32> {
+        let txn = store.db.begin_read().unwrap();
+        let meta = txn.open_table(META).unwrap();
+        meta.get("records").unwrap().map(|v| v.value())
+    }
+
+    #[test]
+    fn a_store_of_format_1_records_is_upgraded_as_it_opens() {
+        // Written by format 1's code: the map of `testdata/format1.map` (the slam crate's) as
+        // map 3, whose keyframes recorded no `previous`.
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("maps.redb");
+        let testdata = concat!(env!("CARGO_MANIFEST_DIR"), "/testdata/format1.redb");
+        std::fs::copy(testdata, &path).unwrap();
+        let file = include_bytes!("../../slam/testdata/format1.map");
+        let want = format!("{:?}", vsgraphs_slam::archive::decode(file).unwrap());
+
+        let store = Store::open(&path).unwrap();
+        assert_eq!(records_format(&store), Some(FORMAT_VERSION));
+        let maps = store.maps().unwrap();
+        assert_eq!(maps.len(), 1);
+        assert_eq!(maps[0].0, MapId(3));
+        assert_eq!(format!("{:?}", maps[0].1), want);
+        drop(store);
+        // Opened again, the rows are read in today's format: the same map.
+        let store = Store::open(&path).unwrap();
+        let maps = store.maps().unwrap();
+        assert_eq!(format!("{:?}", maps[0].1), want);
+    }
 
     #[test]
     fn a_failed_merge_commit_is_redone_whole_with_its_removal() {

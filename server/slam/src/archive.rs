@@ -2,9 +2,10 @@
 //! so that a map read back tracks, closes loops and merges exactly as the one written.
 //!
 //! The file is `MAGIC`, the format's version (u32), the payload's length (u64) and its CRC-32
-//! (u32), all little-endian, then the payload: a [`MapRecord`] in postcard's wire format. The
-//! records are this module's own, not the map's types, so that the map can change without
-//! breaking stored maps: a change to the records is a new [`FORMAT_VERSION`].
+//! (u32), all little-endian, then the payload: a [`MapRecord`] in postcard's wire format, then
+//! (since format 2) the list of each keyframe's [`KeyFrame::previous`]. The records are this
+//! module's own, not the map's types, so that the map can change without breaking stored maps:
+//! a change to the records is a new [`FORMAT_VERSION`], and older formats are still read.
 //!
 //! Reading checks the header, the length and the checksum, then every id and count in the
 //! payload against the rest, so that a damaged or hostile file is refused with what is wrong
@@ -24,8 +25,11 @@ pub mod rows;
 
 /// The first bytes of a map file. The CR LF and the NUL catch a file mangled as text.
 pub const MAGIC: [u8; 8] = *b"VSGMAP\r\n";
-/// The payload's layout; files of another version are refused.
-pub const FORMAT_VERSION: u32 = 1;
+/// The payload's layout as written. Format 1 (before keyframes recorded the one their robot
+/// made before them) is still read; other versions are refused.
+pub const FORMAT_VERSION: u32 = 2;
+/// The oldest format read.
+pub const OLDEST_FORMAT: u32 = 1;
 const HEADER_LEN: usize = MAGIC.len() + 4 + 8 + 4;
 
 /// Why bytes are not a map.
@@ -33,7 +37,9 @@ const HEADER_LEN: usize = MAGIC.len() + 4 + 8 + 4;
 pub enum ArchiveError {
     #[error("not a vsgraphs map file (it does not start with the map file's signature)")]
     NotAMap,
-    #[error("map file format {found}; this server reads format {FORMAT_VERSION}")]
+    #[error(
+        "map file format {found}; this server reads formats {OLDEST_FORMAT} to {FORMAT_VERSION}"
+    )]
     Version { found: u32 },
     #[error("the map file is cut short: {found} bytes of {expected}")]
     Truncated { expected: u64, found: u64 },
@@ -53,11 +59,15 @@ pub fn encode(map: &Map) -> Vec<u8> {
 }
 
 fn written(record: &MapRecord) -> Vec<u8> {
-    framed(
-        &postcard::to_allocvec(record)
-            // The records hold only plain data, which postcard always writes.
-            .expect("a map's records serialise"),
-    )
+    framed(&payload(record))
+}
+
+/// The payload of today's format: the records, then each keyframe's previous keyframe.
+fn payload(record: &MapRecord) -> Vec<u8> {
+    let previous = record.previous.as_deref().unwrap_or_default();
+    postcard::to_allocvec(&(record, previous))
+        // The records hold only plain data, which postcard always writes.
+        .expect("a map's records serialise")
 }
 
 /// `payload` behind the file's header.
@@ -73,14 +83,21 @@ fn framed(payload: &[u8]) -> Vec<u8> {
 
 /// The map in the bytes of a map file, checked throughout.
 pub fn decode(bytes: &[u8]) -> Result<Map, ArchiveError> {
-    let body = checked_payload(bytes)?;
-    let record: MapRecord =
-        postcard::from_bytes(body).map_err(|e| ArchiveError::Malformed(e.to_string()))?;
+    let (version, body) = checked_payload(bytes)?;
+    let malformed = |e: postcard::Error| ArchiveError::Malformed(e.to_string());
+    let record = if version == 1 {
+        postcard::from_bytes::<MapRecord>(body).map_err(malformed)?
+    } else {
+        let (mut record, previous): (MapRecord, Vec<Option<u32>>) =
+            postcard::from_bytes(body).map_err(malformed)?;
+        record.previous = Some(previous);
+        record
+    };
     record.into_map()
 }
 
-/// The payload of a map file whose header, length and checksum are right.
-fn checked_payload(bytes: &[u8]) -> Result<&[u8], ArchiveError> {
+/// The format and payload of a map file whose header, length and checksum are right.
+fn checked_payload(bytes: &[u8]) -> Result<(u32, &[u8]), ArchiveError> {
     if bytes.len() < MAGIC.len() || bytes[..MAGIC.len()] != MAGIC {
         return Err(ArchiveError::NotAMap);
     }
@@ -92,7 +109,7 @@ fn checked_payload(bytes: &[u8]) -> Result<&[u8], ArchiveError> {
     }
     let word = |at: usize| u32::from_le_bytes(bytes[at..at + 4].try_into().expect("4 bytes"));
     let version = word(8);
-    if version != FORMAT_VERSION {
+    if !(OLDEST_FORMAT..=FORMAT_VERSION).contains(&version) {
         return Err(ArchiveError::Version { found: version });
     }
     let length = u64::from_le_bytes(bytes[12..20].try_into().expect("8 bytes"));
@@ -111,7 +128,7 @@ fn checked_payload(bytes: &[u8]) -> Result<&[u8], ArchiveError> {
     if crc32fast::hash(body) != checksum {
         return Err(ArchiveError::Checksum);
     }
-    Ok(body)
+    Ok((version, body))
 }
 
 /// A rigid pose: unit quaternion (x, y, z, w) and translation, stored as computed (not
@@ -147,6 +164,10 @@ struct MapRecord {
     /// which queries' ties depend on).
     places_by_word: Vec<Vec<u32>>,
     places_bags: Vec<Option<BagRecord>>,
+    /// Each keyframe's [`KeyFrame::previous`], written after the record (format 2); `None`
+    /// when read from format 1, whose keyframes then follow their arena predecessors.
+    #[serde(skip)]
+    previous: Option<Vec<Option<u32>>>,
 }
 
 #[derive(Serialize, Deserialize)]
@@ -255,6 +276,12 @@ impl MapRecord {
                 .iter()
                 .map(|b| b.as_ref().map(bag_record))
                 .collect(),
+            previous: Some(
+                map.keyframes
+                    .iter()
+                    .map(|k| k.previous.map(|p| p.0))
+                    .collect(),
+            ),
         }
     }
 
@@ -441,11 +468,32 @@ impl MapRecord {
             .into_iter()
             .map(|k| keyframe(k, "a trajectory start"))
             .collect::<Result<BTreeSet<_>, _>>()?;
-        // Files do not record which robot made each keyframe: each follows the one before it
-        // in the arena, but where a merged map's part begins.
-        for (i, k) in keyframes.iter_mut().enumerate().skip(1) {
-            if !trajectory_starts.contains(&KeyFrameId(i as u32)) {
-                k.previous = Some(KeyFrameId(i as u32 - 1));
+        match self.previous {
+            Some(previous) => {
+                if previous.len() != n {
+                    return bad(format!(
+                        "{} previous keyframes for {n} keyframes",
+                        previous.len()
+                    ));
+                }
+                for (i, (k, p)) in keyframes.iter_mut().zip(previous).enumerate() {
+                    // Only an older keyframe, as the map's writer takes: the chain ends.
+                    if let Some(p) = p.filter(|&p| p as usize >= i) {
+                        return bad(format!(
+                            "keyframe {i} follows keyframe {p}, not an older one"
+                        ));
+                    }
+                    k.previous = p.map(KeyFrameId);
+                }
+            }
+            // Format 1 did not record which robot made each keyframe: each follows the one
+            // before it in the arena, but where a merged map's part begins.
+            None => {
+                for (i, k) in keyframes.iter_mut().enumerate().skip(1) {
+                    if !trajectory_starts.contains(&KeyFrameId(i as u32)) {
+                        k.previous = Some(KeyFrameId(i as u32 - 1));
+                    }
+                }
             }
         }
         if self.neighbours.len() > n {
@@ -674,7 +722,8 @@ pub(crate) mod tests {
     use crate::frame::tests::rig;
     use crate::map::tests::frame;
 
-    /// Two keyframes that share a point, a marker seen by the first, a loop between them.
+    /// Two keyframes that share a point, a marker seen by the first, a loop between them; the
+    /// second made by another robot than the first (so it follows no keyframe).
     pub(crate) fn small_map() -> Map {
         let rig = rig();
         let mut map = Map {
@@ -691,6 +740,7 @@ pub(crate) mod tests {
         });
         let a = map.add_keyframe(first, Se3::identity());
         let b = map.add_keyframe(frame(4, &rig), Se3::identity());
+        map.keyframe_mut(b).previous = None;
         let p = map.add_point(Vector3::new(0.1, 0.2, 2.0), a, 0, &rig);
         map.add_observation(p, b, 1);
         map.markers.insert(
@@ -731,7 +781,37 @@ pub(crate) mod tests {
         let map = small_map();
         let read = decode(&encode(&map)).unwrap();
         assert_eq!(format!("{read:?}"), format!("{map:?}"));
+        assert_eq!(read.keyframes[1].previous, None);
         assert_eq!(read.live_points(), 1);
+    }
+
+    #[test]
+    fn a_format_1_file_reads_with_each_keyframe_after_its_arena_predecessor() {
+        // Written by format 1's code: `small_map` with a third keyframe that starts a
+        // trajectory (format 1 kept no `previous`, and its `small_map` left the arena's).
+        let bytes = include_bytes!("../testdata/format1.map");
+        assert_eq!(bytes[8], 1);
+        let map = decode(bytes).unwrap();
+        let previous: Vec<_> = map.keyframes.iter().map(|k| k.previous).collect();
+        assert_eq!(previous, [None, Some(KeyFrameId(0)), None]);
+        assert_eq!(
+            (map.keyframes.len(), map.live_points(), map.markers.len()),
+            (3, 1, 1)
+        );
+        // Written again, it is today's format and reads back the same.
+        let again = encode(&map);
+        assert_eq!(again[8..12], FORMAT_VERSION.to_le_bytes());
+        assert_eq!(format!("{:?}", decode(&again).unwrap()), format!("{map:?}"));
+    }
+
+    #[test]
+    fn a_keyframe_follows_only_an_older_one() {
+        let why = inconsistent(read_changed(|r| r.previous.as_mut().unwrap()[1] = Some(1)));
+        assert_eq!(why, "keyframe 1 follows keyframe 1, not an older one");
+        let why = inconsistent(read_changed(|r| {
+            r.previous.as_mut().unwrap().pop();
+        }));
+        assert_eq!(why, "1 previous keyframes for 2 keyframes");
     }
 
     #[test]
@@ -826,7 +906,7 @@ pub(crate) mod tests {
             edits in proptest::collection::vec((proptest::prelude::any::<usize>(), 1u8..=255), 1..6),
             cut in 0usize..48,
         ) {
-            let mut payload = postcard::to_allocvec(&MapRecord::of(&small_map())).unwrap();
+            let mut payload = payload(&MapRecord::of(&small_map()));
             for (at, x) in edits {
                 let i = at % payload.len();
                 payload[i] ^= x;

@@ -24,7 +24,8 @@ use std::hash::{Hash, Hasher};
 /// The rows of a keyframe or point, by index in their map.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, PartialOrd, Ord)]
 pub enum RowKind {
-    /// A keyframe's frame: stamp, keypoints, descriptors, marker sightings.
+    /// A keyframe's frame: stamp, keypoints, descriptors, marker sightings, and (since format
+    /// 2) the keyframe its robot made before it.
     Frame,
     /// A keyframe's pose, point slots, parent and covisible keyframes.
     State,
@@ -112,9 +113,10 @@ impl Ledger {
         }
         let n = map.keyframes.len();
         for (i, k) in map.keyframes.iter().enumerate().skip(self.frames) {
+            let previous = k.previous.map(|p| p.0);
             changes
                 .rows
-                .push((RowKind::Frame, i as u32, sealed(&frame_row(k))));
+                .push((RowKind::Frame, i as u32, sealed(&(frame_row(k), previous))));
         }
         self.frames = self.frames.max(n);
         self.states.resize(n, 0);
@@ -166,6 +168,9 @@ impl Ledger {
 /// A map's rows as read from a store, checksums not yet checked.
 #[derive(Debug, Default)]
 pub struct StoredRows {
+    /// The records' format the rows were written in ([`FORMAT_VERSION`](super::FORMAT_VERSION)
+    /// or an older one still read).
+    pub format: u32,
     pub header: Vec<u8>,
     pub frames: Vec<Vec<u8>>,
     pub states: Vec<Vec<u8>>,
@@ -202,8 +207,16 @@ pub fn assemble(rows: StoredRows) -> Result<Map, ArchiveError> {
     let mut keyframes = Vec::with_capacity(n);
     let mut neighbours = Vec::with_capacity(n);
     let mut bags = Vec::with_capacity(n);
+    let mut previous = Vec::with_capacity(n);
     for (i, (frame, state)) in rows.frames.iter().zip(&rows.states).enumerate() {
-        let frame: FrameRow = opened(frame, &format!("keyframe {i}'s frame"))?;
+        let what = format!("keyframe {i}'s frame");
+        let frame: FrameRow = if rows.format == 1 {
+            opened(frame, &what)?
+        } else {
+            let (frame, p) = opened::<(FrameRow, Option<u32>)>(frame, &what)?;
+            previous.push(p);
+            frame
+        };
         let state: StateRow = opened(state, &format!("keyframe {i}'s state"))?;
         keyframes.push(KeyFrameRecord {
             timestamp_ns: frame.timestamp_ns,
@@ -257,6 +270,7 @@ pub fn assemble(rows: StoredRows) -> Result<Map, ArchiveError> {
         neighbours,
         places_by_word,
         places_bags: bags,
+        previous: (rows.format != 1).then_some(previous),
     }
     .into_map()
 }
@@ -437,6 +451,7 @@ mod tests {
             let (keyframes, points) = counts(&self.header)?;
             let get = |kind, i| self.rows.get(&(kind, i)).cloned().unwrap_or_default();
             assemble(StoredRows {
+                format: crate::archive::FORMAT_VERSION,
                 header: self.header.clone(),
                 frames: (0..keyframes).map(|i| get(RowKind::Frame, i)).collect(),
                 states: (0..keyframes).map(|i| get(RowKind::State, i)).collect(),
