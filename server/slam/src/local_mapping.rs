@@ -34,8 +34,8 @@ const WHOLE_MAP_ITERATIONS: usize = 20;
 /// a robot walking at a keyframe every few frames gives it about that.
 const WHOLE_MAP_LAG: usize = 1;
 
-/// Keyframes after a loop closes before the next loop is looked for (about two seconds of a
-/// walk at a keyframe every few frames: the revisit that closed it).
+/// A robot's keyframes after it closes a loop before it looks for the next (about two seconds
+/// of a walk at a keyframe every few frames: the revisit that closed it).
 const LOOP_GAP: usize = 10;
 
 /// The whole-map optimisation's priority, as a nice value: its result is awaited a keyframe
@@ -181,14 +181,34 @@ pub struct LocalMapper {
     whole_map_worker: Option<Worker<GlobalJob, SolvedGlobal>>,
     /// The rig a whole-map optimisation being solved in the background was built with.
     pending_whole_map: Option<Rig>,
-    /// Look for loops after each keyframe; keyframes inserted since the last loop closed; the
-    /// keyframe to look from, once its request is answered.
+    /// Look for loops after each keyframe; each robot's keyframes since it closed one; the
+    /// keyframe to look from, and its robot, once its request is answered.
     close_loops: bool,
-    since_loop: usize,
-    loop_check: Option<(KeyFrameId, Rig)>,
+    since_loop: LoopGaps,
+    loop_check: Option<(KeyFrameId, TrackerId, Rig)>,
     /// The newest keyframe of each robot writing to the map, as far as the requests tell
     /// ([`Heads`]): optimisations of the whole map hold every robot's window still.
     heads: Heads,
+}
+
+/// Each robot's keyframes since it closed a loop: a robot looks for the next after
+/// [`LOOP_GAP`] of its own. Robots mapping one place at once insert their keyframes in turn, and
+/// another robot's keyframes are no revisit of this one's place.
+#[derive(Debug, Default)]
+struct LoopGaps(FxHashMap<TrackerId, usize>);
+
+impl LoopGaps {
+    /// `tracker` inserted a keyframe: whether it may look for a loop from it.
+    fn keyframe(&mut self, tracker: TrackerId) -> bool {
+        let since = self.0.entry(tracker).or_insert(LOOP_GAP);
+        *since += 1;
+        *since >= LOOP_GAP
+    }
+
+    /// `tracker` closed a loop.
+    fn closed(&mut self, tracker: TrackerId) {
+        self.0.insert(tracker, 0);
+    }
 }
 
 /// What joining another map to this one did ([`LocalMapper::absorb`]).
@@ -219,7 +239,7 @@ impl LocalMapper {
             whole_map_worker: None,
             pending_whole_map: None,
             close_loops: false,
-            since_loop: LOOP_GAP,
+            since_loop: LoopGaps::default(),
             loop_check: None,
             heads: Heads::default(),
         }
@@ -302,11 +322,11 @@ impl LocalMapper {
 
     /// Looks for a loop at keyframe `k`; one found becomes a loop edge of the map, and the
     /// whole-map optimisation starts with the next keyframe instead of at its turn. After a
-    /// loop, [`LOOP_GAP`] keyframes pass before the next is looked for: the keyframes that
-    /// follow revisit the same place, and one edge per visit is enough to pull it together.
-    fn look_for_loop(&mut self, map: &mut Map, rig: &Rig, k: KeyFrameId) {
-        self.since_loop += 1;
-        if !self.close_loops || self.whole_map_every == 0 || self.since_loop < LOOP_GAP {
+    /// loop, [`LOOP_GAP`] of its robot's keyframes pass before that robot looks for the next:
+    /// they revisit the same place, and one edge per visit is enough to pull it together.
+    fn look_for_loop(&mut self, map: &mut Map, rig: &Rig, k: KeyFrameId, tracker: TrackerId) {
+        let looks = self.since_loop.keyframe(tracker);
+        if !self.close_loops || self.whole_map_every == 0 || !looks {
             return;
         }
         let started = Instant::now();
@@ -335,7 +355,7 @@ impl LocalMapper {
             "loop closed"
         );
         map.loop_edges.push(edge);
-        self.since_loop = 0;
+        self.since_loop.closed(tracker);
         self.since_whole_map = self
             .since_whole_map
             .max(self.whole_map_every.saturating_sub(1));
@@ -409,8 +429,8 @@ impl LocalMapper {
     /// writer calls it after answering, so the tracker does not wait for it; otherwise the
     /// next request does it first. Either way the map never depends on timing.
     pub fn look_for_pending_loop(&mut self, map: &mut Map) {
-        if let Some((k, rig)) = self.loop_check.take() {
-            self.look_for_loop(map, &rig, k);
+        if let Some((k, tracker, rig)) = self.loop_check.take() {
+            self.look_for_loop(map, &rig, k, tracker);
         }
     }
 
@@ -503,7 +523,7 @@ impl LocalMapper {
         mapping::fuse_with_neighbours(map, &rig, k);
         self.recent_points.cull(map, tracker);
         map.refresh_neighbours(k);
-        self.loop_check = Some((k, rig.clone()));
+        self.loop_check = Some((k, tracker, rig.clone()));
         if self.config.local_ba_iterations > 0 {
             let job = mapping::prepare_local_ba(
                 map,
@@ -700,6 +720,23 @@ mod tests {
             map.add_keyframe(crate::map::tests::frame(4, &rig), pose);
         }
         map
+    }
+
+    #[test]
+    fn a_robot_waits_for_its_own_keyframes_after_closing_a_loop() {
+        let mut gaps = LoopGaps::default();
+        let (a, b) = (TrackerId(1), TrackerId(2));
+        assert!(gaps.keyframe(a) && gaps.keyframe(b));
+        gaps.closed(a);
+        // The robots insert in turn: b looks every time; a after LOOP_GAP of its own.
+        let mut a_looks = Vec::new();
+        for _ in 0..LOOP_GAP {
+            a_looks.push(gaps.keyframe(a));
+            assert!(gaps.keyframe(b));
+        }
+        let mut want = vec![false; LOOP_GAP - 1];
+        want.push(true);
+        assert_eq!(a_looks, want);
     }
 
     #[test]
