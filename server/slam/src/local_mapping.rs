@@ -186,9 +186,6 @@ pub struct LocalMapper {
     close_loops: bool,
     since_loop: LoopGaps,
     loop_check: Option<(KeyFrameId, TrackerId, Rig)>,
-    /// The newest keyframe of each robot writing to the map, as far as the requests tell
-    /// ([`Heads`]): optimisations of the whole map hold every robot's window still.
-    heads: Heads,
 }
 
 /// Each robot's keyframes since it closed a loop: a robot looks for the next after
@@ -241,7 +238,6 @@ impl LocalMapper {
             close_loops: false,
             since_loop: LoopGaps::default(),
             loop_check: None,
-            heads: Heads::default(),
         }
     }
 
@@ -264,19 +260,13 @@ impl LocalMapper {
         self.finish_local_ba(map)?;
         self.land_whole_map(map, true);
         let newest = newest_live(map);
-        let source_newest = newest_live(source);
         let started = Instant::now();
         let absorbed = merge::absorb(map, source, &alignment);
         let absorb_time = started.elapsed();
         let started = Instant::now();
-        // A robot may be tracking at the newest keyframes of either part: both hold still, and
-        // the correction goes into the older parts.
-        if let Some(k) = source_newest {
-            self.heads.add(absorbed.keyframe(k));
-        }
         let whole_map = match (map.rig.clone(), newest) {
             (Some(rig), Some(newest)) => {
-                let mut hold = self.heads.held(map);
+                let mut hold = HashSet::new();
                 hold.extend(std::iter::once(newest).chain(mapping::local_window(map, newest)));
                 // The maps are one already: a failed solve leaves the parts where the
                 // alignment put them, and the next whole-map optimisation tries again.
@@ -363,8 +353,10 @@ impl LocalMapper {
 
     /// Starts the whole-map optimisation when its turn has come, before a keyframe is inserted
     /// (the last local BA has landed). The newest keyframe and its local window hold still: the
-    /// frame being inserted was tracked against them, and the keyframes that follow it grow
-    /// from them, so the correction landing later needs no change there.
+    /// gauge, and where a robot tracks now. Other robots' windows are free: their trackers
+    /// follow their points wherever the map moves them (`LastFrame::follow_map`), and holding
+    /// them kept two robots' parts as they happened to lie, bending the loops and markers that
+    /// join them instead of turning one part onto the other.
     fn start_whole_map(&mut self, map: &Map, rig: &Rig) -> Result<(), TrackError> {
         if self.whole_map_every == 0
             || self.pending_whole_map.is_some()
@@ -376,7 +368,7 @@ impl LocalMapper {
         let Some(newest) = newest_live(map) else {
             return Ok(());
         };
-        let mut hold = self.heads.held(map);
+        let mut hold = HashSet::new();
         hold.extend(std::iter::once(newest).chain(mapping::local_window(map, newest)));
         let Some(job) = GlobalJob::prepare(map, rig, &self.walls, &hold, WHOLE_MAP_ITERATIONS)
         else {
@@ -454,7 +446,6 @@ impl LocalMapper {
         map.rig = Some(rig.clone());
         let n = frame.len();
         let keyframe = map.add_keyframe(frame, Se3::identity());
-        self.heads.add(keyframe);
         for i in 0..n {
             if let Some(p_c) = map.keyframe(keyframe).frame.back_project(i, &rig.camera) {
                 map.add_point(p_c, keyframe, i, rig);
@@ -508,7 +499,6 @@ impl LocalMapper {
         let (k, created) = mapping::insert_keyframe(map, &rig, frame, pose, &points);
         // Only an older keyframe: the chain the essential graph walks back must end.
         map.keyframe_mut(k).previous = previous.filter(|&p| p < k);
-        self.heads.advance(map, reference, k);
         self.recent_points.keyframe(tracker);
         self.recent_points.watch(tracker, created);
         if self.config.triangulate_points {
@@ -590,81 +580,6 @@ impl LocalMapper {
     }
 }
 
-/// Robots writing to one map at most, as far as [`Heads`] keeps track.
-const MAX_HEADS: usize = 8;
-
-/// Keyframes others insert into a map before the head of a robot that inserted none meanwhile
-/// is let go: the robot has left the map (or stands still), and its last window, held for
-/// ever, would stiffen every later correction there. At walking pace a robot maps a keyframe
-/// every 0.1–0.3 s, so this is tens of seconds of the others' mapping.
-const HEAD_STALE_AFTER: u64 = 100;
-
-/// Where each robot writing to a map is: its newest keyframe. Heads go by the tracker's
-/// reference keyframe a request names, near the robot, rather than by its tracker: a robot that
-/// came with a merged map is known here only by the keyframe it was at. The new keyframe
-/// replaces the head that is that reference, or else the head nearest it. So after
-/// two maps are merged the robots of both keep a head each, and an optimisation of the whole
-/// map holds both robots' windows still instead of swinging the part one of them tracks in.
-#[derive(Debug, Default)]
-struct Heads {
-    /// Each head and the count of insertions when it became one.
-    heads: Vec<(KeyFrameId, u64)>,
-    inserted: u64,
-}
-
-impl Heads {
-    fn add(&mut self, k: KeyFrameId) {
-        if !self.heads.iter().any(|&(h, _)| h == k) {
-            self.heads.push((k, self.inserted));
-        }
-        if self.heads.len() > MAX_HEADS {
-            self.heads.remove(0);
-        }
-    }
-
-    /// Keyframe `k` was inserted by the tracker whose reference was `reference`.
-    fn advance(&mut self, map: &Map, reference: Option<KeyFrameId>, k: KeyFrameId) {
-        self.inserted += 1;
-        let replaced = reference.and_then(|r| {
-            let at = map.world_from_keyframe(r).translation;
-            self.heads.iter().position(|&(h, _)| h == r).or_else(|| {
-                self.heads
-                    .iter()
-                    .enumerate()
-                    .map(|(i, &(h, _))| (i, (map.world_from_keyframe(h).translation - at).norm()))
-                    .min_by(|a, b| a.1.total_cmp(&b.1))
-                    .map(|(i, _)| i)
-            })
-        });
-        match replaced {
-            Some(i) => self.heads[i] = (k, self.inserted),
-            None => self.add(k),
-        }
-        let now = self.inserted;
-        self.heads
-            .retain(|&(_, since)| now - since <= HEAD_STALE_AFTER);
-    }
-
-    /// Every head (or the live keyframe it was culled into) and its local window.
-    fn held(&self, map: &Map) -> HashSet<KeyFrameId> {
-        let mut held = HashSet::new();
-        for &(head, _) in &self.heads {
-            let mut live = head;
-            while let Some((parent, _)) = map.keyframe(live).parent {
-                live = parent;
-            }
-            held.insert(live);
-            held.extend(mapping::local_window(map, live));
-        }
-        held
-    }
-
-    #[cfg(test)]
-    fn keyframes(&self) -> Vec<KeyFrameId> {
-        self.heads.iter().map(|&(h, _)| h).collect()
-    }
-}
-
 /// The newest keyframe not culled.
 fn newest_live(map: &Map) -> Option<KeyFrameId> {
     map.keyframes
@@ -737,35 +652,5 @@ mod tests {
         let mut want = vec![false; LOOP_GAP - 1];
         want.push(true);
         assert_eq!(a_looks, want);
-    }
-
-    #[test]
-    fn each_robot_keeps_its_head_when_their_keyframes_interleave() {
-        // Robot A walked keyframes 0–2 near x = 0; robot B's map, merged in, ended at
-        // keyframe 4 near x = 10.
-        let mut map = map_at(&[0.0, 0.5, 1.0, 9.5, 10.0, 1.5, 10.5, 2.0]);
-        let mut heads = Heads::default();
-        heads.add(KeyFrameId(2));
-        heads.add(KeyFrameId(4));
-        // A's next keyframe, tracked from its own newest; then B's, tracked from its own.
-        heads.advance(&map, Some(KeyFrameId(2)), KeyFrameId(5));
-        heads.advance(&map, Some(KeyFrameId(4)), KeyFrameId(6));
-        assert_eq!(heads.keyframes(), vec![KeyFrameId(5), KeyFrameId(6)]);
-        // A tracks from an older keyframe of its own, not a head: the nearest head is its.
-        heads.advance(&map, Some(KeyFrameId(1)), KeyFrameId(7));
-        assert_eq!(heads.keyframes(), vec![KeyFrameId(7), KeyFrameId(6)]);
-        // A head culled since is held through the keyframe it was culled into.
-        map.keyframes[6].parent = Some((KeyFrameId(4), Se3::identity()));
-        let held = heads.held(&map);
-        assert!(held.contains(&KeyFrameId(7)) && held.contains(&KeyFrameId(4)));
-        assert!(!held.contains(&KeyFrameId(6)));
-        // B leaves: once others have inserted enough keyframes since its last (A's one above
-        // and these), B's head is let go.
-        for _ in 0..HEAD_STALE_AFTER - 1 {
-            heads.advance(&map, Some(KeyFrameId(7)), KeyFrameId(7));
-        }
-        assert_eq!(heads.keyframes(), vec![KeyFrameId(7), KeyFrameId(6)]);
-        heads.advance(&map, Some(KeyFrameId(7)), KeyFrameId(7));
-        assert_eq!(heads.keyframes(), vec![KeyFrameId(7)]);
     }
 }
