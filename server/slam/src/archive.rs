@@ -64,8 +64,7 @@ fn written(record: &MapRecord) -> Vec<u8> {
 
 /// The payload of today's format: the records, then each keyframe's previous keyframe.
 fn payload(record: &MapRecord) -> Vec<u8> {
-    let previous = record.previous.as_deref().unwrap_or_default();
-    postcard::to_allocvec(&(record, previous))
+    postcard::to_allocvec(&(record, &record.previous))
         // The records hold only plain data, which postcard always writes.
         .expect("a map's records serialise")
 }
@@ -86,11 +85,13 @@ pub fn decode(bytes: &[u8]) -> Result<Map, ArchiveError> {
     let (version, body) = checked_payload(bytes)?;
     let malformed = |e: postcard::Error| ArchiveError::Malformed(e.to_string());
     let record = if version == 1 {
-        postcard::from_bytes::<MapRecord>(body).map_err(malformed)?
+        let mut record = postcard::from_bytes::<MapRecord>(body).map_err(malformed)?;
+        record.previous = record.format_1_previous();
+        record
     } else {
         let (mut record, previous): (MapRecord, Vec<Option<u32>>) =
             postcard::from_bytes(body).map_err(malformed)?;
-        record.previous = Some(previous);
+        record.previous = previous;
         record
     };
     record.into_map()
@@ -164,10 +165,10 @@ struct MapRecord {
     /// which queries' ties depend on).
     places_by_word: Vec<Vec<u32>>,
     places_bags: Vec<Option<BagRecord>>,
-    /// Each keyframe's [`KeyFrame::previous`], written after the record (format 2); `None`
-    /// when read from format 1, whose keyframes then follow their arena predecessors.
+    /// Each keyframe's [`KeyFrame::previous`], written after the record (format 2); derived
+    /// when read from format 1 ([`MapRecord::format_1_previous`]).
     #[serde(skip)]
-    previous: Option<Vec<Option<u32>>>,
+    previous: Vec<Option<u32>>,
 }
 
 #[derive(Serialize, Deserialize)]
@@ -276,13 +277,21 @@ impl MapRecord {
                 .iter()
                 .map(|b| b.as_ref().map(bag_record))
                 .collect(),
-            previous: Some(
-                map.keyframes
-                    .iter()
-                    .map(|k| k.previous.map(|p| p.0))
-                    .collect(),
-            ),
+            previous: map
+                .keyframes
+                .iter()
+                .map(|k| k.previous.map(|p| p.0))
+                .collect(),
         }
+    }
+
+    /// Format 1 did not record which robot made each keyframe: each follows the one before it
+    /// in the arena, but where a merged map's part begins.
+    fn format_1_previous(&self) -> Vec<Option<u32>> {
+        let starts: BTreeSet<u32> = self.trajectory_starts.iter().copied().collect();
+        (0..self.keyframes.len() as u32)
+            .map(|i| i.checked_sub(1).filter(|_| !starts.contains(&i)))
+            .collect()
     }
 
     /// The map, once every id in the record is checked against the lists it indexes.
@@ -468,33 +477,20 @@ impl MapRecord {
             .into_iter()
             .map(|k| keyframe(k, "a trajectory start"))
             .collect::<Result<BTreeSet<_>, _>>()?;
-        match self.previous {
-            Some(previous) => {
-                if previous.len() != n {
-                    return bad(format!(
-                        "{} previous keyframes for {n} keyframes",
-                        previous.len()
-                    ));
-                }
-                for (i, (k, p)) in keyframes.iter_mut().zip(previous).enumerate() {
-                    // Only an older keyframe, as the map's writer takes: the chain ends.
-                    if let Some(p) = p.filter(|&p| p as usize >= i) {
-                        return bad(format!(
-                            "keyframe {i} follows keyframe {p}, not an older one"
-                        ));
-                    }
-                    k.previous = p.map(KeyFrameId);
-                }
+        if self.previous.len() != n {
+            return bad(format!(
+                "{} previous keyframes for {n} keyframes",
+                self.previous.len()
+            ));
+        }
+        for (i, (k, p)) in keyframes.iter_mut().zip(self.previous).enumerate() {
+            // Only an older keyframe, as the map's writer takes: the chain ends.
+            if let Some(p) = p.filter(|&p| p as usize >= i) {
+                return bad(format!(
+                    "keyframe {i} follows keyframe {p}, not an older one"
+                ));
             }
-            // Format 1 did not record which robot made each keyframe: each follows the one
-            // before it in the arena, but where a merged map's part begins.
-            None => {
-                for (i, k) in keyframes.iter_mut().enumerate().skip(1) {
-                    if !trajectory_starts.contains(&KeyFrameId(i as u32)) {
-                        k.previous = Some(KeyFrameId(i as u32 - 1));
-                    }
-                }
-            }
+            k.previous = p.map(KeyFrameId);
         }
         if self.neighbours.len() > n {
             return bad(format!(
@@ -806,10 +802,10 @@ pub(crate) mod tests {
 
     #[test]
     fn a_keyframe_follows_only_an_older_one() {
-        let why = inconsistent(read_changed(|r| r.previous.as_mut().unwrap()[1] = Some(1)));
+        let why = inconsistent(read_changed(|r| r.previous[1] = Some(1)));
         assert_eq!(why, "keyframe 1 follows keyframe 1, not an older one");
         let why = inconsistent(read_changed(|r| {
-            r.previous.as_mut().unwrap().pop();
+            r.previous.pop();
         }));
         assert_eq!(why, "1 previous keyframes for 2 keyframes");
     }

@@ -260,7 +260,7 @@ pub fn assemble(rows: StoredRows) -> Result<Map, ArchiveError> {
     for (i, bytes) in rows.points.iter().enumerate() {
         points.push(opened::<PointRecord>(bytes, &format!("point {i}"))?);
     }
-    MapRecord {
+    let mut record = MapRecord {
         rig: header.rig,
         keyframes,
         points,
@@ -270,9 +270,12 @@ pub fn assemble(rows: StoredRows) -> Result<Map, ArchiveError> {
         neighbours,
         places_by_word,
         places_bags: bags,
-        previous: (rows.format != 1).then_some(previous),
+        previous,
+    };
+    if rows.format == 1 {
+        record.previous = record.format_1_previous();
     }
-    .into_map()
+    record.into_map()
 }
 
 /// What a map holds beside its keyframes and points.
