@@ -392,7 +392,8 @@ struct Skip {
 /// Writes a solved whole-map optimisation into `map`, which may have changed since the job was
 /// made (keyframes added, local BA moved some): each keyframe and marker of the job moves by
 /// the job's correction of it (`after · before⁻¹`), so what changed meanwhile is kept.
-/// Keyframes added since (next to the held ones) and what they see stay where they are.
+/// Keyframes added since follow the keyframe their robot made before them: those next to the
+/// held window stay, another robot's move with the part of the map they continue.
 pub fn apply_global(
     map: &mut Map,
     rig: &Rig,
@@ -407,9 +408,36 @@ pub fn apply_global(
         return Ok(job.report);
     };
     let mut corrections: HashMap<KeyFrameId, Se3> = HashMap::new();
+    let mut still: HashSet<KeyFrameId> = job.hold.clone();
     for &(k, key, before) in &job.keyframes {
         let correction = solution.get(key).compose(&before.inverse());
         let keyframe = map.keyframe_mut(k);
+        if !keyframe.is_culled() {
+            keyframe.world_from_camera = correction.compose(&keyframe.world_from_camera);
+        }
+        corrections.insert(k, correction);
+    }
+    // Keyframes added since: a robot mapping elsewhere in the map while the solve ran would
+    // otherwise be left behind by the part it continues. Arena order puts each keyframe after
+    // the one it follows.
+    let newest_solved = job.keyframes.last().map_or(0, |(k, _, _)| k.0 as usize + 1);
+    for i in newest_solved..map.keyframes.len() {
+        let k = map.keyframes[i].id;
+        // Past keyframes culled before the job was made, to the one the robot made before.
+        let mut followed = map.keyframes[i].previous;
+        while let Some(p) = followed.filter(|p| !corrections.contains_key(p) && !still.contains(p))
+        {
+            followed = map.keyframe(p).previous;
+        }
+        let correction = followed
+            .filter(|p| !still.contains(p))
+            .and_then(|p| corrections.get(&p))
+            .copied();
+        let Some(correction) = correction else {
+            still.insert(k);
+            continue;
+        };
+        let keyframe = &mut map.keyframes[i];
         if !keyframe.is_culled() {
             keyframe.world_from_camera = correction.compose(&keyframe.world_from_camera);
         }
@@ -425,6 +453,7 @@ pub fn apply_global(
             map.keyframes[i].world_from_camera = pose;
         }
     }
+    let solved_markers: HashSet<i32> = job.markers.iter().map(|var| var.id).collect();
     for var in &job.markers {
         if let Some(marker) = map.markers.get_mut(&var.id) {
             let correction = solution
@@ -433,9 +462,19 @@ pub fn apply_global(
             marker.world_from_marker = correction.compose(&marker.world_from_marker);
         }
     }
+    // Markers mapped since move with the keyframe that first saw them, as points do.
+    for marker in map.markers.values_mut() {
+        if solved_markers.contains(&marker.id) {
+            continue;
+        }
+        let first = marker.observations.first().map(|&(k, _)| k);
+        if let Some(correction) = first.and_then(|k| corrections.get(&k)) {
+            marker.world_from_marker = correction.compose(&marker.world_from_marker);
+        }
+    }
     // Each point moves with the keyframe that first saw it, unless a keyframe that did not
-    // move sees it (a held one, or one added since).
-    let still = |k: &KeyFrameId| job.hold.contains(k) || !corrections.contains_key(k);
+    // move sees it (a held one, or one that follows a held one).
+    let still = |k: &KeyFrameId| still.contains(k) || !corrections.contains_key(k);
     for index in 0..map.points.len() {
         let point = &map.points[index];
         if point.bad || point.observations.iter().any(|(k, _)| still(k)) {
@@ -876,6 +915,21 @@ mod tests {
         let last = map.keyframe(KeyFrameId(N as u32 - 1));
         let (frame, pose) = (last.frame.clone(), last.world_from_camera);
         let added = map.add_keyframe(frame, pose);
+        // And another robot's, continuing from keyframe 10, with a marker only it saw.
+        let frame = map.keyframe(KeyFrameId(10)).frame.clone();
+        let ten = map.keyframe(KeyFrameId(10)).world_from_camera;
+        let other = map.add_keyframe(frame, ten);
+        map.keyframes[other.0 as usize].previous = Some(KeyFrameId(10));
+        let world_from_9 = ten.compose(&marker_pose());
+        map.markers.insert(
+            9,
+            MapMarker {
+                id: 9,
+                side_m: SIDE,
+                world_from_marker: world_from_9,
+                observations: vec![(other, 0)],
+            },
+        );
         let report = apply_global(&mut map, &rig, job.solve()).unwrap();
         assert!(report.applied, "{report:?}");
 
@@ -891,8 +945,21 @@ mod tests {
                 .angle_to(&pose_of(&at_once, 20).rotation)
                 < 1e-9
         );
-        // The keyframe added meanwhile stays where it was put.
+        // The keyframe added meanwhile next to the held ones stays where it was put.
         assert!(map.keyframe(added).world_from_camera.local(&pose).norm() < 1e-12);
+        // The other robot's moved with keyframe 10 (which did move), and its marker with it.
+        let correction = pose_of(&map, 10).compose(&ten.inverse());
+        assert!(correction.translation.norm() > 0.01, "{correction:?}");
+        let expected = correction.compose(&ten);
+        assert!(
+            map.keyframe(other)
+                .world_from_camera
+                .local(&expected)
+                .norm()
+                < 1e-9
+        );
+        let expected = correction.compose(&world_from_9);
+        assert!(map.markers[&9].world_from_marker.local(&expected).norm() < 1e-9);
     }
 
     /// The essential graph's edges among `live` keyframes, as pairs of ids.

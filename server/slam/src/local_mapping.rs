@@ -637,6 +637,86 @@ mod tests {
         map
     }
 
+    /// Two robots map at once, their parts 0.1 m further apart than a loop between their
+    /// first keyframes says: the whole-map optimisation moves one part onto the other whole,
+    /// rather than stretching the keyframes between the loop and each robot's newest; a
+    /// keyframe one robot inserts while the solve runs moves with its part.
+    #[test]
+    fn a_loop_between_two_robots_moves_one_part_onto_the_other() {
+        let rig = crate::frame::tests::rig();
+        let mut mapper = LocalMapper::new(MappingConfig {
+            local_ba_iterations: 0,
+            local_ba_threads: 1,
+            background_ba: false,
+            triangulate_points: false,
+            cull_keyframes: false,
+        });
+        mapper.set_whole_map_every(1);
+        let mut map = Map::default();
+        let frame = || crate::map::tests::frame(4, &rig);
+        let start = MapRequest::Start {
+            frame: frame(),
+            rig: rig.clone(),
+        };
+        mapper.handle(&mut map, start).unwrap();
+        let at = |x: f64| {
+            Se3::new(
+                nalgebra::UnitQuaternion::identity(),
+                Vector3::new(x, 0.0, 0.0),
+            )
+        };
+        let (a, b) = (TrackerId(1), TrackerId(2));
+        let mut newest = FxHashMap::default();
+        newest.insert(a, KeyFrameId(0));
+        // Each robot steps 0.5 m along x from its previous keyframe as the map has it (a
+        // tracker measures its motion from its own keyframes), in turn; b starts 5 m from a.
+        let steps = [b, a, b, a, b, a, b];
+        for tracker in steps {
+            let previous = newest.get(&tracker).copied();
+            let world_from_camera = match previous {
+                Some(p) => map.keyframe(p).world_from_camera.compose(&at(0.5)),
+                None => at(5.0),
+            };
+            let request = KeyframeRequest {
+                tracker,
+                frame: frame(),
+                rig: rig.clone(),
+                world_from_camera,
+                points: vec![None; 4],
+                reference: previous,
+                previous,
+                statistics: PointStatistics::default(),
+            };
+            let MapReply::Inserted { keyframe, .. } = mapper
+                .handle(&mut map, MapRequest::Insert(request))
+                .unwrap()
+            else {
+                panic!("not inserted");
+            };
+            if previous.is_none() {
+                map.loop_edges.push(crate::map::LoopEdge {
+                    older: KeyFrameId(0),
+                    newer: keyframe,
+                    older_from_newer: at(4.9),
+                    inliers: 100,
+                });
+            }
+            newest.insert(tracker, keyframe);
+        }
+        let flush = MapRequest::Flush(PointStatistics::default());
+        mapper.handle(&mut map, flush).unwrap();
+        let x = |k: u32| map.keyframe(KeyFrameId(k)).world_from_camera.translation.x;
+        // a's keyframes are 0, 2, 4, 6; b's 1, 3, 5, 7.
+        assert!((x(1) - x(0) - 4.9).abs() < 0.01, "{} apart", x(1) - x(0));
+        for (p, q) in [(0, 2), (2, 4), (4, 6), (1, 3), (3, 5), (5, 7)] {
+            assert!(
+                (x(q) - x(p) - 0.5).abs() < 0.01,
+                "{p}, {q}: {}",
+                x(q) - x(p)
+            );
+        }
+    }
+
     #[test]
     fn a_robot_waits_for_its_own_keyframes_after_closing_a_loop() {
         let mut gaps = LoopGaps::default();
