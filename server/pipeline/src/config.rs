@@ -102,6 +102,10 @@ pub struct MarkerConfig {
     /// Detect markers on a second thread while the worker extracts the frame's features
     /// (false: one after the other on the worker, for one-core robots and one-core timing).
     pub beside_features: bool,
+    /// Search the whole image for markers every this many frames, and in the frames between
+    /// only around the markers of the frame before (1: the whole image in every frame). A
+    /// marker coming into view is then found up to this many frames minus one late.
+    pub full_search_every: u32,
 }
 
 impl Default for MarkerConfig {
@@ -115,6 +119,7 @@ impl Default for MarkerConfig {
             depth_refinement: true,
             depth_agreement: 0.15,
             beside_features: true,
+            full_search_every: 1,
         }
     }
 }

@@ -16,6 +16,7 @@ use vsgraphs_vision::aruco::MarkerDetector;
 use vsgraphs_vision::camera::PinholeCamera;
 use vsgraphs_vision::decode;
 use vsgraphs_vision::dictionary::DictionaryError;
+use vsgraphs_vision::marker_search::MarkerSearch;
 use vsgraphs_vision::pose::{MarkerPoseEstimate, PoseEstimator};
 use vsgraphs_vision::GreyImage;
 
@@ -61,6 +62,8 @@ pub struct FrameTracking {
 /// Frame processing state of one worker thread (OpenCV objects are per thread).
 pub struct FrameProcessor {
     detector: MarkerDetector,
+    /// Where the robot's markers are searched for: the whole image, or around those it saw.
+    search: MarkerSearch,
     settings: MarkerConfig,
     max_frame_bytes: usize,
     /// Pose estimation is set up per camera model; robots rarely change theirs.
@@ -89,6 +92,7 @@ impl FrameProcessor {
         };
         Ok(Self {
             detector,
+            search: MarkerSearch::new(settings.full_search_every),
             settings: settings.clone(),
             max_frame_bytes,
             estimator: None,
@@ -158,8 +162,18 @@ impl FrameProcessor {
         // Markers are detected on a second thread while this one extracts the frame's
         // features (unless `beside_features` is off): both only read the image, and together
         // they are most of a frame's work.
+        // Markers are followed within a session; frames skipped since the last one (by the
+        // robot, or dropped here) count as frames passed.
+        let frames_passed = previous
+            .filter(|p| p.session_id == frame.session_id)
+            .map(|p| frame.sequence.saturating_sub(p.sequence));
+        if frames_passed.is_none() {
+            self.search.restart();
+        }
+        let frames_passed = u32::try_from(frames_passed.unwrap_or(1)).unwrap_or(u32::MAX);
         let Self {
             detector,
+            search,
             settings,
             estimator,
             tracker,
@@ -169,7 +183,15 @@ impl FrameProcessor {
         let beside_features = settings.beside_features;
         let mut detect = || {
             let started = Instant::now();
-            let found = detect_markers(detector, estimator, settings, &camera, &grey, &depth);
+            let found = detect_markers(
+                detector,
+                (search, frames_passed),
+                estimator,
+                settings,
+                &camera,
+                &grey,
+                &depth,
+            );
             (found, started.elapsed())
         };
         let mut extract_features = || {
@@ -234,14 +256,15 @@ impl From<vsgraphs_vision::CvError> for SetupError {
 /// the camera changes. A pose that cannot be computed leaves its detection without one.
 fn detect_markers(
     detector: &mut MarkerDetector,
+    (search, frames_passed): (&mut MarkerSearch, u32),
     estimator: &mut Option<PoseEstimator>,
     settings: &MarkerConfig,
     camera: &PinholeCamera,
     grey: &GreyImage,
     depth: &vsgraphs_vision::depth::DepthImage,
 ) -> Result<(Vec<MarkerDetection>, Vec<MarkerSighting>), (Reason, String)> {
-    let detections = detector
-        .detect(grey)
+    let detections = search
+        .detect(detector, grey, frames_passed)
         .map_err(|e| (Reason::Detection, e.to_string()))?;
     if estimator.as_ref().is_none_or(|e| e.camera() != camera) {
         let made = PoseEstimator::new(camera.clone(), settings.side_m);

@@ -4,7 +4,7 @@ use crate::dictionary::MarkerDictionary;
 use crate::image::GreyImage;
 use crate::CvError;
 use opencv::aruco::DetectorParameters;
-use opencv::core::{Mat, Point2f, Ptr, Vector};
+use opencv::core::{Mat, Point2f, Ptr, Rect, Vector};
 use opencv::prelude::*;
 use serde::{Deserialize, Serialize};
 
@@ -27,6 +27,15 @@ pub enum CornerRefinement {
 pub struct Detection {
     pub id: i32,
     pub corners: [[f32; 2]; 4],
+}
+
+/// A rectangle of an image, pixels: where a search looks.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Area {
+    pub x: i32,
+    pub y: i32,
+    pub width: i32,
+    pub height: i32,
 }
 
 /// Which windows the adaptive threshold before the contour search uses.
@@ -53,6 +62,9 @@ pub struct MarkerDetector {
     opencv_dictionary: Ptr<opencv::aruco::Dictionary>,
     refinement: CornerRefinement,
     parameters: Ptr<DetectorParameters>,
+    /// OpenCV's smallest marker outline as a share of the searched image's larger side; kept
+    /// so that a search of an area looks for markers as small as a search of the whole image.
+    min_perimeter_rate: f64,
     corners: Vector<Vector<Point2f>>,
     ids: Vector<i32>,
     rejected: Vector<Vector<Point2f>>,
@@ -72,7 +84,9 @@ impl MarkerDetector {
             CornerRefinement::Contour => opencv::aruco::CORNER_REFINE_CONTOUR,
         };
         parameters.set_corner_refinement_method(method);
+        let min_perimeter_rate = parameters.min_marker_perimeter_rate();
         Ok(Self {
+            min_perimeter_rate,
             opencv_dictionary: dictionary.opencv()?,
             dictionary,
             refinement,
@@ -101,6 +115,52 @@ impl MarkerDetector {
     /// Finds the markers in a grey image.
     pub fn detect(&mut self, image: &GreyImage) -> Result<Vec<Detection>, CvError> {
         let image = image.mat();
+        let mut detections = Vec::new();
+        self.find(image, (0, 0), &mut detections)?;
+        self.refine(image, detections)
+    }
+
+    /// Finds the markers wholly inside `areas` (clipped to the image; areas should not
+    /// overlap, or a marker in both is found twice), with corners in the image's pixels. An
+    /// area with room around a marker for the widest threshold window gives it the same
+    /// corners as a search of the whole image.
+    pub fn detect_in(
+        &mut self,
+        image: &GreyImage,
+        areas: &[Area],
+    ) -> Result<Vec<Detection>, CvError> {
+        let image = image.mat();
+        let (width, height) = (image.cols(), image.rows());
+        let mut detections = Vec::new();
+        for area in areas {
+            let x0 = area.x.clamp(0, width);
+            let y0 = area.y.clamp(0, height);
+            let x1 = (area.x + area.width).clamp(0, width);
+            let y1 = (area.y + area.height).clamp(0, height);
+            if x1 - x0 < 2 || y1 - y0 < 2 {
+                continue;
+            }
+            let part = Mat::roi(image, Rect::new(x0, y0, x1 - x0, y1 - y0))?;
+            // OpenCV's smallest outline is relative to the searched image's larger side.
+            let rate = self.min_perimeter_rate * f64::from(width.max(height))
+                / f64::from((x1 - x0).max(y1 - y0));
+            self.parameters.set_min_marker_perimeter_rate(rate);
+            let found = self.find(&part, (x0, y0), &mut detections);
+            self.parameters
+                .set_min_marker_perimeter_rate(self.min_perimeter_rate);
+            found?;
+        }
+        self.refine(image, detections)
+    }
+
+    /// OpenCV's detection on `image`, a part of the whole at `offset`; plausible markers are
+    /// added to `detections` in the whole image's pixels.
+    fn find(
+        &mut self,
+        image: &impl opencv::core::ToInputArray,
+        offset: (i32, i32),
+        detections: &mut Vec<Detection>,
+    ) -> Result<(), CvError> {
         self.corners.clear();
         self.ids.clear();
         self.rejected.clear();
@@ -112,11 +172,11 @@ impl MarkerDetector {
             &self.parameters,
             &mut self.rejected,
         )?;
-        let mut detections = Vec::with_capacity(self.ids.len());
+        let (dx, dy) = (offset.0 as f32, offset.1 as f32);
         for (id, quad) in self.ids.iter().zip(self.corners.iter()) {
             let mut corners = [[0f32; 2]; 4];
             for (slot, point) in corners.iter_mut().zip(quad.iter()) {
-                *slot = [point.x, point.y];
+                *slot = [point.x + dx, point.y + dy];
             }
             if plausible_square(&corners) {
                 detections.push(Detection { id, corners });
@@ -124,6 +184,15 @@ impl MarkerDetector {
                 // A sliver that happened to decode: not a marker.
             }
         }
+        Ok(())
+    }
+
+    /// Corner refinement on the whole image, when configured.
+    fn refine(
+        &self,
+        image: &Mat,
+        mut detections: Vec<Detection>,
+    ) -> Result<Vec<Detection>, CvError> {
         if self.refinement == CornerRefinement::Subpixel {
             refine_subpixel(image, &mut detections)?;
         }

@@ -11,6 +11,7 @@ pub mod decode;
 pub mod depth;
 pub mod dictionary;
 pub mod image;
+pub mod marker_search;
 pub mod orb;
 pub mod pose;
 pub mod synth;
@@ -22,3 +23,10 @@ pub use image::{GreyImage, ImageError};
 #[derive(Debug, thiserror::Error)]
 #[error("OpenCV: {0}")]
 pub struct CvError(#[from] opencv::Error);
+
+/// Turns off OpenCV's own worker threads, so that a stage's whole cost is on the calling
+/// thread: for timing it by that thread's CPU clock (OpenCV otherwise spreads some calls, such
+/// as marker detection's threshold windows, over every core).
+pub fn opencv_on_one_thread() -> Result<(), CvError> {
+    Ok(opencv::core::set_num_threads(1)?)
+}
