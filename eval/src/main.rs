@@ -296,6 +296,11 @@ enum Command {
         /// The adaptive threshold's windows: three (OpenCV's 3, 13 and 23 px) or one (7 px).
         #[arg(long, value_enum, default_value = "three")]
         threshold_windows: WindowsArg,
+        /// Follow markers from frame to frame, the whole image searched every this many frames
+        /// (`[markers] full_search_every`), over every frame, against searching every whole
+        /// frame: what the followed search misses and what it costs.
+        #[arg(long)]
+        follow: Option<u32>,
         /// Print JSON instead of the table.
         #[arg(long)]
         json: bool,
@@ -594,6 +599,7 @@ fn main() -> anyhow::Result<()> {
             images,
             dictionary,
             threshold_windows,
+            follow,
             json,
         } => {
             let refinement = vsgraphs_vision::aruco::CornerRefinement::Subpixel;
@@ -622,11 +628,23 @@ fn main() -> anyhow::Result<()> {
                     windows,
                     ..Default::default()
                 };
-                let run = vsgraphs_eval::markers::run(&scenario, &options, |done, total| {
-                    if done % 200 == 0 || done == total {
+                let report = |done: usize, total: usize| {
+                    if done.is_multiple_of(200) || done == total {
                         eprintln!("{done}/{total} frames");
                     }
-                })?;
+                };
+                if let Some(full_every) = follow {
+                    let run = vsgraphs_eval::markers::run_followed(
+                        &scenario, &options, full_every, report,
+                    )?;
+                    if json {
+                        println!("{}", serde_json::to_string_pretty(&run)?);
+                    } else {
+                        vsgraphs_eval::markers::print_followed(&run);
+                    }
+                    return Ok(());
+                }
+                let run = vsgraphs_eval::markers::run(&scenario, &options, report)?;
                 if json {
                     println!("{}", serde_json::to_string_pretty(&run)?);
                 } else {

@@ -10,6 +10,7 @@ use vsgraphs_sim::scenarios::Scenario;
 use vsgraphs_sim::sequence::render_frame;
 use vsgraphs_vision::aruco::{CornerRefinement, MarkerDetector, ThresholdWindows};
 use vsgraphs_vision::dictionary::MarkerDictionary;
+use vsgraphs_vision::marker_search::MarkerSearch;
 use vsgraphs_vision::GreyImage;
 
 /// Upper ends of the distance bins recall is counted in, metres.
@@ -114,6 +115,8 @@ pub fn run(
     options: &MarkersOptions,
     progress: impl Fn(usize, usize),
 ) -> anyhow::Result<MarkersRun> {
+    // Timed on this thread's CPU clock: every part of the detection must run on it.
+    vsgraphs_vision::opencv_on_one_thread()?;
     let (building, renderer) = scenario.build(options.seed).context("building the plan")?;
     let camera = &scenario.render.camera;
     let dictionary = MarkerDictionary::predefined(&scenario.plan.markers.dictionary)?;
@@ -220,6 +223,97 @@ pub fn run(
     })
 }
 
+/// Markers followed from frame to frame ([`MarkerSearch`]) against the whole image searched in
+/// every frame, over every frame of a scenario's walks.
+#[derive(Debug, Clone, Serialize)]
+pub struct FollowRun {
+    pub frames: usize,
+    /// Every how many frames the followed search looks at the whole image.
+    pub full_every: u32,
+    /// Markers found by searching every whole frame (one per marker and frame).
+    pub whole: usize,
+    /// Of those, the followed search missed these: markers it was not following (coming into
+    /// view, or not seen for a while, waiting for the next whole search) ...
+    pub missed_new: usize,
+    /// ... and markers it was following, lost by the search around them.
+    pub missed_followed: usize,
+    /// Found by the followed search only (none expected).
+    pub extra: usize,
+    /// Found by both with corners more than 0.01 px apart.
+    pub corners_differ: usize,
+    /// CPU time per frame, milliseconds: the whole image, and the followed search.
+    pub cpu_ms_whole: Spread,
+    pub cpu_ms_followed: Spread,
+}
+
+/// Runs both searches over every frame of every walk of `scenario`.
+pub fn run_followed(
+    scenario: &Scenario,
+    options: &MarkersOptions,
+    full_every: u32,
+    progress: impl Fn(usize, usize),
+) -> anyhow::Result<FollowRun> {
+    // Timed on this thread's CPU clock: every part of the detection must run on it.
+    vsgraphs_vision::opencv_on_one_thread()?;
+    let (_, renderer) = scenario.build(options.seed).context("building the plan")?;
+    let camera = &scenario.render.camera;
+    let dictionary = MarkerDictionary::predefined(&scenario.plan.markers.dictionary)?;
+    let mut detector = MarkerDetector::new(dictionary, options.refinement)?;
+    detector.set_threshold_windows(options.windows);
+    let walks = scenario.walks().context("planning the walks")?;
+    let total: usize = walks.iter().map(|w| w.times.len()).sum();
+    let mut run = FollowRun {
+        frames: 0,
+        full_every,
+        whole: 0,
+        missed_new: 0,
+        missed_followed: 0,
+        extra: 0,
+        corners_differ: 0,
+        cpu_ms_whole: Spread::default(),
+        cpu_ms_followed: Spread::default(),
+    };
+    let (mut cpu_whole, mut cpu_followed) = (Vec::new(), Vec::new());
+    for walk in &walks {
+        let mut search = MarkerSearch::new(full_every);
+        for i in 0..walk.times.len() {
+            run.frames += 1;
+            progress(run.frames, total);
+            let frame = render_frame(&renderer, walk, i);
+            let image = GreyImage::from_pixels(camera.width, camera.height, &frame.grey())?;
+            let followed_before: Vec<i32> = search.followed_ids().collect();
+            let started = vsgraphs_slam::cpu_time::thread();
+            let whole = detector.detect(&image)?;
+            let middle = vsgraphs_slam::cpu_time::thread();
+            let followed = search.detect(&mut detector, &image, 1)?;
+            let ended = vsgraphs_slam::cpu_time::thread();
+            cpu_whole.push((middle - started).as_secs_f64() * 1e3);
+            cpu_followed.push((ended - middle).as_secs_f64() * 1e3);
+            run.whole += whole.len();
+            for w in &whole {
+                match followed.iter().find(|f| f.id == w.id) {
+                    None if followed_before.contains(&w.id) => run.missed_followed += 1,
+                    None => run.missed_new += 1,
+                    Some(f) => {
+                        let apart =
+                            f.corners.iter().zip(&w.corners).any(|(a, b)| {
+                                (a[0] - b[0]).abs() > 0.01 || (a[1] - b[1]).abs() > 0.01
+                            });
+                        run.corners_differ += usize::from(apart);
+                    }
+                }
+            }
+            run.extra += followed
+                .iter()
+                .filter(|f| !whole.iter().any(|w| w.id == f.id))
+                .count();
+        }
+    }
+    run.cpu_ms_whole = Spread::of(cpu_whole);
+    run.cpu_ms_followed = Spread::of(cpu_followed);
+    Ok(run)
+}
+
 /// Times the detector on every `*.color.jpg` of `folder` (the dictionary by OpenCV's name).
 pub fn run_images(
     folder: &Path,
@@ -238,6 +332,8 @@ pub fn run_images(
         "{} holds no *.color.jpg frame",
         folder.display()
     );
+    // Timed on this thread's CPU clock: every part of the detection must run on it.
+    vsgraphs_vision::opencv_on_one_thread()?;
     let mut detector = MarkerDetector::new(MarkerDictionary::predefined(dictionary)?, refinement)?;
     detector.set_threshold_windows(windows);
     let (mut cpu, mut detections) = (Vec::new(), 0);
@@ -252,6 +348,24 @@ pub fn run_images(
         detections,
         cpu_ms: Spread::of(cpu),
     })
+}
+
+/// The followed search against the whole image, as a few lines.
+pub fn print_followed(run: &FollowRun) {
+    println!(
+        "{} frames; the whole image searched every {} frames, and around the markers between",
+        run.frames, run.full_every
+    );
+    println!(
+        "markers found searching every whole frame: {}; the followed search missed {} coming \
+         into view and {} it was following; found only by it: {}; corners apart: {}",
+        run.whole, run.missed_new, run.missed_followed, run.extra, run.corners_differ
+    );
+    let (w, f) = (&run.cpu_ms_whole, &run.cpu_ms_followed);
+    println!(
+        "CPU ms per frame, whole / followed: median {:.2} / {:.2}, mean {:.2} / {:.2}, p99 {:.2} / {:.2}",
+        w.median, f.median, w.mean, f.mean, w.p99, f.p99
+    );
 }
 
 /// The run as a table.
