@@ -363,7 +363,8 @@ pub fn print_followed(run: &FollowRun) {
     );
     let (w, f) = (&run.cpu_ms_whole, &run.cpu_ms_followed);
     println!(
-        "CPU ms per frame, whole / followed: median {:.2} / {:.2}, mean {:.2} / {:.2}, p99 {:.2} / {:.2}",
+        "CPU ms per frame, whole / followed: median {:.2} / {:.2}, mean {:.2} / {:.2}, \
+         p99 {:.2} / {:.2}",
         w.median, f.median, w.mean, f.mean, w.p99, f.p99
     );
 }

@@ -159,9 +159,6 @@ impl FrameProcessor {
         // Decoding: the protobuf, the colour image and the depth image.
         let decode = started.elapsed();
 
-        // Markers are detected on a second thread while this one extracts the frame's
-        // features (unless `beside_features` is off): both only read the image, and together
-        // they are most of a frame's work.
         // Markers are followed within a session; frames skipped since the last one (by the
         // robot, or dropped here) count as frames passed.
         let frames_passed = previous
@@ -171,6 +168,9 @@ impl FrameProcessor {
             self.search.restart();
         }
         let frames_passed = u32::try_from(frames_passed.unwrap_or(1)).unwrap_or(u32::MAX);
+        // Markers are detected on a second thread while this one extracts the frame's
+        // features (unless `beside_features` is off): both only read the image, and together
+        // they are most of a frame's work.
         let Self {
             detector,
             search,

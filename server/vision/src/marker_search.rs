@@ -1,9 +1,9 @@
 //! Markers followed from frame to frame, so that most frames cost a search of a few small areas
 //! instead of the whole image. The whole image is searched every `full_every` frames of the
-//! stream (and after [`MarkerSearch::restart`]); in the frames between, only around where the markers found in
-//! the last few frames should now be. A marker that comes into view is therefore found at most
-//! `full_every − 1` frames late, and one that moves faster than the search expects is found
-//! again at the next whole-image search.
+//! stream (and after [`MarkerSearch::restart`]); in the frames between, only around where the
+//! markers found in the last few frames should now be. A marker that comes into view is
+//! therefore found at most `full_every − 1` frames late, and one that moves faster than the
+//! search expects is found again at the next whole-image search.
 //!
 //! Searching an area finds what the whole image does there: OpenCV's threshold and contour
 //! search look only a few pixels around each pixel, so an area that holds the marker with room
