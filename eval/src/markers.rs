@@ -119,9 +119,7 @@ pub fn run(
     vsgraphs_vision::opencv_on_one_thread()?;
     let (building, renderer) = scenario.build(options.seed).context("building the plan")?;
     let camera = &scenario.render.camera;
-    let dictionary = MarkerDictionary::predefined(&scenario.plan.markers.dictionary)?;
-    let mut detector = MarkerDetector::new(dictionary, options.refinement)?;
-    detector.set_threshold_windows(options.windows);
+    let mut detector = detector_for(scenario, options)?;
     let walks = scenario.walks().context("planning the walks")?;
     let total: usize = walks
         .iter()
@@ -223,6 +221,14 @@ pub fn run(
     })
 }
 
+/// The detector of a scenario's dictionary, set as `options` say.
+fn detector_for(scenario: &Scenario, options: &MarkersOptions) -> anyhow::Result<MarkerDetector> {
+    let dictionary = MarkerDictionary::predefined(&scenario.plan.markers.dictionary)?;
+    let mut detector = MarkerDetector::new(dictionary, options.refinement)?;
+    detector.set_threshold_windows(options.windows);
+    Ok(detector)
+}
+
 /// Markers followed from frame to frame ([`MarkerSearch`]) against the whole image searched in
 /// every frame, over every frame of a scenario's walks.
 #[derive(Debug, Clone, Serialize)]
@@ -257,9 +263,7 @@ pub fn run_followed(
     vsgraphs_vision::opencv_on_one_thread()?;
     let (_, renderer) = scenario.build(options.seed).context("building the plan")?;
     let camera = &scenario.render.camera;
-    let dictionary = MarkerDictionary::predefined(&scenario.plan.markers.dictionary)?;
-    let mut detector = MarkerDetector::new(dictionary, options.refinement)?;
-    detector.set_threshold_windows(options.windows);
+    let mut detector = detector_for(scenario, options)?;
     let walks = scenario.walks().context("planning the walks")?;
     let total: usize = walks.iter().map(|w| w.times.len()).sum();
     let mut run = FollowRun {
